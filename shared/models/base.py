@@ -1,0 +1,66 @@
+"""The two-stage interface every served VLA model follows.
+
+A VLA model is split into the two stages the engine schedules separately:
+
+- ``vlm_stage(images, state, tokens) -> handoff``: the compute-heavy vision-language
+  model. ``images`` is uint8 ``[B, cameras, H, W, 3]`` exactly as robots send them;
+  resizing and normalisation happen inside, on the model's device.
+- ``action_stage(handoff, noise) -> actions``: the action expert / diffusion
+  transformer with its Euler flow-matching steps inside; ``noise`` and the result
+  are ``[B, horizon, action_dim]``.
+
+Both stages have static shapes for a given batch size, never synchronise with the
+host and never branch on data, so the engine can capture each as a CUDA graph and
+pass the handoff through static buffers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+Handoff = dict[str, torch.Tensor]
+
+
+@dataclass(frozen=True)
+class ModelIO:
+    """What a model takes from a robot and gives back."""
+
+    cameras: tuple[str, ...]
+    image_shape: tuple[int, int, int]  # H, W, 3 of each uint8 camera image on the wire
+    state_dim: int
+    prompt_len: int  # tokens after padding / truncation
+    horizon: int
+    action_dim: int
+    steps: int  # Euler flow-matching steps in the action stage
+
+
+class VLAModel(nn.Module):
+    """Base class of every two-stage VLA model in the zoo."""
+
+    arch: str = ""  # registry name of the architecture, e.g. "pi0"
+    io: ModelIO
+
+    def vlm_stage(self, images: torch.Tensor, state: torch.Tensor, tokens: torch.Tensor) -> Handoff:
+        raise NotImplementedError
+
+    def action_stage(self, handoff: Handoff, noise: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def example_inputs(self, batch: int, device: torch.device | str | None = None,
+                       generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Random, correctly shaped stage inputs (images, state, tokens) for tests and benchmarks."""
+        device = torch.device(device) if device is not None else next(self.parameters()).device
+        io = self.io
+        images = torch.randint(0, 256, (batch, len(io.cameras), *io.image_shape), dtype=torch.uint8,
+                               generator=generator).to(device)
+        state = torch.randn(batch, io.state_dim, generator=generator).to(device)
+        tokens = torch.randint(1, 200, (batch, io.prompt_len), generator=generator).to(device)
+        return images, state, tokens
+
+    def noise(self, batch: int, device: torch.device | str | None = None,
+              generator: torch.Generator | None = None) -> torch.Tensor:
+        device = torch.device(device) if device is not None else next(self.parameters()).device
+        return torch.randn(batch, self.io.horizon, self.io.action_dim, generator=generator).to(device)
