@@ -1,0 +1,155 @@
+"""Per-model FIFO queues and the policy that picks which queue a batch comes from."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from shared.protocol import ErrorCode, ProtocolError
+
+
+@dataclass
+class Request:
+    """A validated inference request inside the executor."""
+
+    id: str
+    robot: str
+    model: str
+    images: np.ndarray  # uint8 [cameras, H, W, 3]
+    state: np.ndarray  # float32 [state_dim]
+    tokens: np.ndarray  # int64 [prompt_len]
+    arrival: float  # time.monotonic() when the executor received it
+    deadline: float  # time.monotonic() by which the reply is due
+    envelope: Any = None  # reply route, owned by the I/O layer
+    noise: np.ndarray | None = None  # fixed initial noise [horizon, action_dim]; drawn by the engine when None
+
+
+@dataclass
+class Result:
+    request: Request
+    actions: np.ndarray | None = None  # float32 [horizon, action_dim]
+    error: tuple[ErrorCode, str] | None = None
+    admitted: float = 0.0  # when its batch entered the VLM stage
+    vlm_s: float = 0.0
+    action_s: float = 0.0
+    done: float = field(default_factory=time.monotonic)
+
+
+def batch_size_for(pending: int, max_batch: int) -> int:
+    """Largest power of two not above min(pending, max_batch): the sizes graphs exist for."""
+    n = min(pending, max_batch)
+    return 1 << (n.bit_length() - 1) if n > 0 else 0
+
+
+class EarliestSLOFirst:
+    """Serve the queue whose head request has the least time left before its deadline."""
+
+    name = "esf"
+
+    def pick(self, queues: dict[str, deque[Request]]) -> str:
+        return min((q[0].deadline, name) for name, q in queues.items() if q)[1]
+
+
+class RoundRobin:
+    name = "rr"
+
+    def __init__(self) -> None:
+        self._last = ""
+
+    def pick(self, queues: dict[str, deque[Request]]) -> str:
+        names = sorted(queues)
+        start = names.index(self._last) + 1 if self._last in queues else 0
+        for i in range(len(names)):
+            name = names[(start + i) % len(names)]
+            if queues[name]:
+                self._last = name
+                return name
+        raise LookupError("no pending request")
+
+
+class LargestQueueFirst:
+    name = "lqf"
+
+    def pick(self, queues: dict[str, deque[Request]]) -> str:
+        # Ties go to the older head, so a queue cannot starve behind an equal-length one.
+        return min((-len(q), q[0].arrival, name) for name, q in queues.items() if q)[2]
+
+
+POLICIES = {"esf": EarliestSLOFirst, "rr": RoundRobin, "lqf": LargestQueueFirst}
+
+
+class ModelQueues:
+    """One bounded FIFO per co-located model, shared by the I/O thread and the engine thread."""
+
+    def __init__(self, models: list[str], max_queue: int = 256, policy: str = "esf", shed_expired: bool = True):
+        if policy not in POLICIES:
+            raise ValueError(f"unknown queue policy {policy!r}; known: {', '.join(POLICIES)}")
+        self._queues: dict[str, deque[Request]] = {m: deque() for m in models}
+        self._max_queue = max_queue
+        self._policy = POLICIES[policy]()
+        self._shed_expired = shed_expired
+        self._cond = threading.Condition()
+        self._pending = 0
+
+    @property
+    def policy(self) -> str:
+        return self._policy.name
+
+    def put(self, req: Request) -> None:
+        with self._cond:
+            q = self._queues.get(req.model)
+            if q is None:
+                raise ProtocolError(ErrorCode.UNKNOWN_MODEL, f"model {req.model!r} is not served by this executor")
+            if len(q) >= self._max_queue:
+                raise ProtocolError(ErrorCode.OVERLOADED, f"queue of {req.model!r} is full ({self._max_queue} requests)")
+            q.append(req)
+            self._pending += 1
+            self._cond.notify()
+
+    def wait(self, timeout: float) -> bool:
+        """Block until a request is pending or ``timeout`` passes; True when one is pending."""
+        with self._cond:
+            if self._pending == 0:
+                self._cond.wait(timeout)
+            return self._pending > 0
+
+    def take(self, max_batch: int, now: float | None = None) -> tuple[str, list[Request], list[Request]]:
+        """Pick a queue by the policy and dequeue a power-of-two batch from it.
+
+        Returns (model, batch, expired): requests whose deadline already passed are
+        taken out and returned separately when shedding is on, so they cost no GPU time.
+        """
+        now = time.monotonic() if now is None else now
+        expired: list[Request] = []
+        with self._cond:
+            if self._shed_expired:
+                for q in self._queues.values():
+                    while q and q[0].deadline <= now:
+                        expired.append(q.popleft())
+                self._pending -= len(expired)
+            if self._pending == 0:
+                return "", [], expired
+            model = self._policy.pick(self._queues)
+            q = self._queues[model]
+            n = batch_size_for(len(q), max_batch)
+            batch = [q.popleft() for _ in range(n)]
+            self._pending -= n
+            return model, batch, expired
+
+    def depths(self) -> dict[str, int]:
+        with self._cond:
+            return {m: len(q) for m, q in self._queues.items()}
+
+    def drain(self) -> list[Request]:
+        """Remove and return everything pending (shutdown: each still gets an answer)."""
+        with self._cond:
+            out = [r for q in self._queues.values() for r in q]
+            for q in self._queues.values():
+                q.clear()
+            self._pending = 0
+            return out

@@ -1,0 +1,252 @@
+"""Cluster configuration: YAML -> validated dataclasses.
+
+Every mistake is reported with its path (``models[1].slo_ms: expected a positive number``)
+as a ConfigError, never as a traceback, and every key the file may hold is declared here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration mistake; ``str(err)`` is the message to show the operator."""
+
+
+def _positive(v: Any) -> bool:
+    return v > 0
+
+
+def _non_negative(v: Any) -> bool:
+    return v >= 0
+
+
+def _power_of_two(v: Any) -> bool:
+    return v >= 1 and v & (v - 1) == 0
+
+
+def _check(pred, text: str) -> dict[str, Any]:
+    return {"check": (pred, text)}
+
+
+@dataclass
+class ModelConfig:
+    name: str
+    arch: str
+    size: str = "tiny"  # "tiny" for CPU demos and tests, "full" for the published dimensions
+    seed: int = 0  # seeded random weights; another seed is another fine-tuned variant
+    weights: str | None = None  # safetensors file of the model's own state dict
+    tokenizer: str | None = None  # tokenizer file; a byte-level tokenizer when absent
+    slo_ms: float = field(default=156.0, metadata=_check(_positive, "expected a positive number"))
+    image_shape: list[int] | None = None  # wire image size [H, W, 3] when not the model's default
+
+
+@dataclass
+class ExecutorConfig:
+    name: str
+    models: list[str]
+    device: str = "cpu"  # "cpu" or "cuda:N"
+
+
+@dataclass
+class EngineConfig:
+    kind: str = "monolithic"  # which engine runs the stages; see services/executor/engines.py
+    max_batch: int = field(default=2, metadata=_check(_power_of_two, "expected a power of two (1, 2, 4, ...)"))
+    policy: str = "esf"  # esf (earliest-SLO-first), rr (round-robin), lqf (largest-queue-first)
+    max_queue: int = field(default=256, metadata=_check(_positive, "expected a positive integer"))
+    shed_expired: bool = True  # answer DEADLINE_EXCEEDED instead of running requests already late
+    seed: int = 0  # noise generator seed
+
+
+@dataclass
+class RouterConfig:
+    bind: str = "tcp://127.0.0.1:5555"  # robots connect here (DEALER)
+    backend: str = "tcp://127.0.0.1:5556"  # executors connect here (DEALER)
+    max_message_bytes: int = field(default=16 * 1024 * 1024, metadata=_check(_positive, "expected a positive integer"))
+    request_timeout_s: float = field(default=30.0, metadata=_check(_positive, "expected a positive number"))
+
+
+@dataclass
+class ControlConfig:
+    bind: str = "tcp://127.0.0.1:5557"
+    heartbeat_s: float = field(default=0.5, metadata=_check(_positive, "expected a positive number"))
+    missed_heartbeats: int = field(default=6, metadata=_check(_positive, "expected a positive integer"))
+    state_dir: str = "state"
+
+
+@dataclass
+class FleetConfig:
+    """The simulated fleet `robion demo` drives."""
+
+    robots: int = field(default=8, metadata=_check(_positive, "expected a positive integer"))
+    hz: float = field(default=2.0, metadata=_check(_positive, "expected a positive number"))
+    duration_s: float = field(default=10.0, metadata=_check(_positive, "expected a positive number"))
+    seed: int = 0
+    network: str = "wifi7"
+    models: list[str] | None = None  # models the robots use, round-robin; all models when absent
+
+
+@dataclass
+class ClusterConfig:
+    models: list[ModelConfig]
+    executors: list[ExecutorConfig]
+    engine: EngineConfig = field(default_factory=EngineConfig)
+    router: RouterConfig = field(default_factory=RouterConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    fleet: FleetConfig = field(default_factory=FleetConfig)
+
+    def model(self, name: str) -> ModelConfig:
+        for m in self.models:
+            if m.name == name:
+                return m
+        raise KeyError(name)
+
+    def executor(self, name: str) -> ExecutorConfig:
+        for e in self.executors:
+            if e.name == name:
+                return e
+        raise KeyError(name)
+
+
+ENGINE_KINDS = ("monolithic", "robion")
+POLICIES = ("esf", "rr", "lqf")
+NETWORKS = ("wifi7", "fast_cloud", "slow_cloud", "5g", "none")
+
+
+# ----------------------------------------------------------------------------- generic loader
+
+def _type_name(tp: Any) -> str:
+    return {str: "a string", int: "an integer", float: "a number", bool: "true or false"}.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def _convert(value: Any, tp: Any, path: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _convert(value, args[0], path)
+    if origin is list:
+        (item_tp,) = typing.get_args(tp)
+        if not isinstance(value, list):
+            raise ConfigError(f"{path}: expected a list")
+        return [_convert(v, item_tp, f"{path}[{i}]") for i, v in enumerate(value)]
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, path)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{path}: expected a number")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{path}: expected an integer")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{path}: expected true or false")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{path}: expected a string")
+        return value
+    raise ConfigError(f"{path}: unsupported type {tp}")
+
+
+def _build(cls: type, data: Any, path: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path or 'config'}: expected a mapping")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    prefix = f"{path}." if path else ""
+    for key in data:
+        if key not in fields:
+            raise ConfigError(f"{prefix}{key}: unknown key (expected one of: {', '.join(fields)})")
+    kwargs = {}
+    for name, f in fields.items():
+        if name not in data:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise ConfigError(f"{prefix}{name}: missing")
+            continue
+        value = _convert(data[name], hints[name], f"{prefix}{name}")
+        check = f.metadata.get("check")
+        if check and value is not None and not check[0](value):
+            raise ConfigError(f"{prefix}{name}: {check[1]}")
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+# ----------------------------------------------------------------------------- cluster rules
+
+def _validate(cfg: ClusterConfig) -> None:
+    from shared.models.registry import architectures
+
+    archs = architectures()
+    if not cfg.models:
+        raise ConfigError("models: at least one model is needed")
+    seen: set[str] = set()
+    for i, m in enumerate(cfg.models):
+        if not m.name or m.name in seen:
+            raise ConfigError(f"models[{i}].name: {'empty' if not m.name else f'duplicate name {m.name!r}'}")
+        seen.add(m.name)
+        if m.arch not in archs:
+            raise ConfigError(f"models[{i}].arch: unknown architecture {m.arch!r} (known: {', '.join(sorted(archs))})")
+        sizes = getattr(archs[m.arch], "CONFIGS", {})
+        if m.size not in sizes:
+            raise ConfigError(f"models[{i}].size: {m.arch} has no size {m.size!r} (sizes: {', '.join(sorted(sizes))})")
+        if m.image_shape is not None and (len(m.image_shape) != 3 or m.image_shape[2] != 3 or min(m.image_shape) < 1):
+            raise ConfigError(f"models[{i}].image_shape: expected [H, W, 3]")
+    if not cfg.executors:
+        raise ConfigError("executors: at least one executor is needed")
+    names: set[str] = set()
+    for j, e in enumerate(cfg.executors):
+        if not e.name or e.name in names:
+            raise ConfigError(f"executors[{j}].name: {'empty' if not e.name else f'duplicate name {e.name!r}'}")
+        names.add(e.name)
+        if not e.models:
+            raise ConfigError(f"executors[{j}].models: an executor needs at least one model")
+        for k, name in enumerate(e.models):
+            if name not in seen:
+                raise ConfigError(f"executors[{j}].models[{k}]: no model named {name!r}")
+        if e.device != "cpu" and not (e.device.startswith("cuda:") and e.device[5:].isdigit()):
+            raise ConfigError(f"executors[{j}].device: expected 'cpu' or 'cuda:N', got {e.device!r}")
+    hosted = {name for e in cfg.executors for name in e.models}
+    for i, m in enumerate(cfg.models):
+        if m.name not in hosted:
+            raise ConfigError(f"models[{i}]: model {m.name!r} is placed on no executor")
+    if cfg.engine.kind not in ENGINE_KINDS:
+        raise ConfigError(f"engine.kind: expected one of {', '.join(ENGINE_KINDS)}, got {cfg.engine.kind!r}")
+    if cfg.engine.policy not in POLICIES:
+        raise ConfigError(f"engine.policy: expected one of {', '.join(POLICIES)}, got {cfg.engine.policy!r}")
+    if cfg.fleet.network not in NETWORKS:
+        raise ConfigError(f"fleet.network: expected one of {', '.join(NETWORKS)}, got {cfg.fleet.network!r}")
+    for k, name in enumerate(cfg.fleet.models or []):
+        if name not in seen:
+            raise ConfigError(f"fleet.models[{k}]: no model named {name!r}")
+
+
+def config_from_dict(data: Any) -> ClusterConfig:
+    cfg = _build(ClusterConfig, data, "")
+    _validate(cfg)
+    return cfg
+
+
+def load_config(path: str | Path) -> ClusterConfig:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"{path}: not valid YAML{where}") from None
+    return config_from_dict(data)

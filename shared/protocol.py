@@ -1,0 +1,327 @@
+"""Robion's wire protocol: a msgpack header frame plus raw array frames.
+
+A message is a list of ZeroMQ frames. Frame 0 is a msgpack map (the header). An array
+travels as ``{"dtype": str, "shape": [int, ...], "frame": int}`` pointing at a later frame
+holding its raw C-order bytes, or, when small, inline as ``{"dtype", "shape", "data": bin}``.
+Arrays only appear at the places each message kind defines, so decoding never walks
+untrusted structure looking for them. No pickle anywhere. docs/protocol.md is the
+language-neutral description of the same thing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Sequence
+
+import msgpack
+import numpy as np
+
+PROTOCOL_VERSION = 1
+INLINE_ARRAY_BYTES = 1024  # arrays up to this size travel inside the header
+MAX_HEADER_BYTES = 64 * 1024
+MAX_ARRAY_DIMS = 8
+ALLOWED_DTYPES = frozenset({"uint8", "int8", "int32", "int64", "float16", "float32", "float64", "bool"})
+
+
+class ErrorCode(str, Enum):
+    BAD_REQUEST = "BAD_REQUEST"  # malformed message, wrong field types, missing fields
+    UNKNOWN_MODEL = "UNKNOWN_MODEL"  # no such model is served
+    SHAPE_MISMATCH = "SHAPE_MISMATCH"  # array shape or dtype differs from the model's declared input
+    TOO_LARGE = "TOO_LARGE"  # message beyond the configured size limit
+    OVERLOADED = "OVERLOADED"  # the model's queue is full
+    DEADLINE_EXCEEDED = "DEADLINE_EXCEEDED"  # the deadline passed before the request could run
+    UNAVAILABLE = "UNAVAILABLE"  # no executor can take the request now
+    INTERNAL = "INTERNAL"  # a server fault; the request may be retried
+
+
+class ProtocolError(Exception):
+    """A request that cannot be served; becomes an error reply with a stable code."""
+
+    def __init__(self, code: ErrorCode, message: str):
+        super().__init__(f"{code.value}: {message}")
+        self.code = code
+        self.message = message
+
+
+Frame = bytes | memoryview
+
+
+# ----------------------------------------------------------------------------- arrays
+
+def encode_array(arr: np.ndarray, frames: list[Frame]) -> dict[str, Any]:
+    """Describe ``arr`` in the header; large arrays are appended to ``frames`` without copying."""
+    if not isinstance(arr, np.ndarray):
+        raise TypeError(f"expected a numpy array, got {type(arr).__name__}")
+    if arr.dtype.name not in ALLOWED_DTYPES:
+        raise TypeError(f"dtype {arr.dtype.name} cannot travel; allowed: {sorted(ALLOWED_DTYPES)}")
+    arr = np.ascontiguousarray(arr)
+    ref: dict[str, Any] = {"dtype": arr.dtype.name, "shape": list(arr.shape)}
+    if arr.nbytes <= INLINE_ARRAY_BYTES:
+        ref["data"] = arr.tobytes()
+    else:
+        ref["frame"] = len(frames)
+        frames.append(memoryview(arr).cast("B"))
+    return ref
+
+
+def decode_array(ref: Any, frames: Sequence[Frame], where: str, used: set[int] | None = None) -> np.ndarray:
+    """Rebuild an array from its header reference; zero-copy for frame-borne arrays.
+
+    Every declared size is checked against the bytes actually present, so an absurd shape
+    costs nothing and never allocates.
+    """
+    if not isinstance(ref, dict):
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}: expected an array object {{dtype, shape, frame|data}}")
+    dtype, shape = ref.get("dtype"), ref.get("shape")
+    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.dtype: expected one of {sorted(ALLOWED_DTYPES)}, got {dtype!r}")
+    if (not isinstance(shape, (list, tuple)) or len(shape) > MAX_ARRAY_DIMS
+            or not all(isinstance(d, int) and not isinstance(d, bool) and 0 <= d < 2**31 for d in shape)):
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.shape: expected a list of at most {MAX_ARRAY_DIMS} non-negative integers")
+    np_dtype = np.dtype(dtype)
+    nbytes = math.prod(shape) * np_dtype.itemsize
+    if "frame" in ref:
+        idx = ref["frame"]
+        if not isinstance(idx, int) or isinstance(idx, bool) or not 1 <= idx < len(frames):
+            raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.frame: {idx!r} does not name one of the {len(frames) - 1} array frames")
+        if used is not None:
+            if idx in used:
+                raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.frame: frame {idx} is referenced twice")
+            used.add(idx)
+        buf = frames[idx]
+    elif "data" in ref:
+        buf = ref["data"]
+        if not isinstance(buf, (bytes, bytearray)):
+            raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.data: expected binary")
+    else:
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}: needs 'frame' or 'data'")
+    if len(buf) != nbytes:
+        raise ProtocolError(ErrorCode.BAD_REQUEST,
+                            f"{where}: shape {list(shape)} of {dtype} needs {nbytes} bytes, got {len(buf)}")
+    return np.frombuffer(buf, dtype=np_dtype).reshape(shape)
+
+
+# ----------------------------------------------------------------------------- messages
+
+@dataclass
+class ModelInfo:
+    """What a robot must send to a model and what it gets back (part of the metadata reply)."""
+
+    cameras: list[str]
+    image_shape: list[int]  # [H, W, 3], uint8
+    state_dim: int
+    horizon: int
+    action_dim: int
+    deadline_ms: float
+    arch: str = ""
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"cameras": list(self.cameras), "image_shape": list(self.image_shape), "state_dim": self.state_dim,
+                "horizon": self.horizon, "action_dim": self.action_dim, "deadline_ms": self.deadline_ms,
+                "arch": self.arch}
+
+    @classmethod
+    def from_wire(cls, d: dict[str, Any]) -> "ModelInfo":
+        return cls(cameras=list(d["cameras"]), image_shape=list(d["image_shape"]), state_dim=int(d["state_dim"]),
+                   horizon=int(d["horizon"]), action_dim=int(d["action_dim"]), deadline_ms=float(d["deadline_ms"]),
+                   arch=str(d.get("arch", "")))
+
+
+@dataclass
+class Timings:
+    queue_ms: float = 0.0
+    vlm_ms: float = 0.0
+    action_ms: float = 0.0
+    server_ms: float = 0.0
+
+    def to_wire(self) -> dict[str, float]:
+        return {"queue_ms": self.queue_ms, "vlm_ms": self.vlm_ms, "action_ms": self.action_ms, "server_ms": self.server_ms}
+
+
+@dataclass
+class InferRequest:
+    id: str
+    robot: str
+    model: str
+    images: dict[str, np.ndarray]  # camera name -> uint8 [H, W, 3]
+    state: np.ndarray  # float32 [state_dim]
+    instruction: str = ""
+
+
+@dataclass
+class InferReply:
+    id: str
+    model: str
+    actions: np.ndarray  # float32 [horizon, action_dim]
+    timings: Timings = field(default_factory=Timings)
+
+
+@dataclass
+class ErrorReply:
+    id: str
+    code: ErrorCode
+    message: str
+
+
+@dataclass
+class Hello:
+    id: str
+
+
+@dataclass
+class Metadata:
+    id: str
+    models: dict[str, ModelInfo]
+    protocol: int = PROTOCOL_VERSION
+
+
+@dataclass
+class Ping:
+    id: str
+
+
+@dataclass
+class Pong:
+    id: str
+
+
+Message = InferRequest | InferReply | ErrorReply | Hello | Metadata | Ping | Pong
+
+
+def pack_header(header: dict[str, Any]) -> bytes:
+    return msgpack.packb(header, use_bin_type=True)
+
+
+def unpack_header(frame: Frame) -> dict[str, Any]:
+    """Decode frame 0 with hard limits, so hostile input cannot make msgpack allocate much."""
+    if len(frame) > MAX_HEADER_BYTES:
+        raise ProtocolError(ErrorCode.TOO_LARGE, f"header is {len(frame)} bytes; the limit is {MAX_HEADER_BYTES}")
+    try:
+        header = msgpack.unpackb(frame, raw=False, strict_map_key=True, max_buffer_size=MAX_HEADER_BYTES,
+                                 max_str_len=MAX_HEADER_BYTES, max_bin_len=MAX_HEADER_BYTES,
+                                 max_array_len=4096, max_map_len=1024, max_ext_len=0)
+    except Exception as exc:  # msgpack raises several unrelated types on garbage
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"header is not valid msgpack ({type(exc).__name__})") from None
+    if not isinstance(header, dict):
+        raise ProtocolError(ErrorCode.BAD_REQUEST, "header must be a msgpack map")
+    return header
+
+
+def header_id(header: dict[str, Any]) -> str:
+    """The request id as a string, or "" when absent or unusable (errors still get a reply)."""
+    rid = header.get("id", "")
+    if isinstance(rid, (str, int)) and not isinstance(rid, bool):
+        return str(rid)[:256]
+    return ""
+
+
+def encode(msg: Message) -> list[Frame]:
+    frames: list[Frame] = [b""]
+    if isinstance(msg, InferRequest):
+        header = {"v": PROTOCOL_VERSION, "kind": "infer", "id": msg.id, "robot": msg.robot, "model": msg.model,
+                  "obs": {"images": {cam: encode_array(img, frames) for cam, img in msg.images.items()},
+                          "state": encode_array(np.asarray(msg.state, dtype=np.float32), frames),
+                          "instruction": msg.instruction}}
+    elif isinstance(msg, InferReply):
+        header = {"v": PROTOCOL_VERSION, "kind": "reply", "id": msg.id, "model": msg.model,
+                  "actions": encode_array(np.asarray(msg.actions, dtype=np.float32), frames),
+                  "timings": msg.timings.to_wire()}
+    elif isinstance(msg, ErrorReply):
+        header = {"v": PROTOCOL_VERSION, "kind": "error", "id": msg.id, "code": ErrorCode(msg.code).value,
+                  "message": msg.message}
+    elif isinstance(msg, Hello):
+        header = {"v": PROTOCOL_VERSION, "kind": "hello", "id": msg.id}
+    elif isinstance(msg, Metadata):
+        header = {"v": PROTOCOL_VERSION, "kind": "metadata", "id": msg.id, "protocol": msg.protocol,
+                  "models": {name: info.to_wire() for name, info in msg.models.items()}}
+    elif isinstance(msg, Ping):
+        header = {"v": PROTOCOL_VERSION, "kind": "ping", "id": msg.id}
+    elif isinstance(msg, Pong):
+        header = {"v": PROTOCOL_VERSION, "kind": "pong", "id": msg.id}
+    else:
+        raise TypeError(f"not a protocol message: {type(msg).__name__}")
+    frames[0] = pack_header(header)
+    return frames
+
+
+def _field(header: dict[str, Any], name: str, typ: type | tuple[type, ...], where: str = "") -> Any:
+    if name not in header:
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}{name}: missing")
+    value = header[name]
+    types = typ if isinstance(typ, tuple) else (typ,)
+    # bool is an int subclass in Python, but msgpack true/false is never a valid number here.
+    if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
+        names = "/".join(t.__name__ for t in types)
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}{name}: expected {names}, got {type(value).__name__}")
+    return value
+
+
+def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Message:
+    """Decode a whole message; raises ProtocolError(BAD_REQUEST) on anything malformed."""
+    if not frames:
+        raise ProtocolError(ErrorCode.BAD_REQUEST, "empty message")
+    if header is None:
+        header = unpack_header(frames[0])
+    version = header.get("v", PROTOCOL_VERSION)
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"v: protocol version {version!r} is not supported (this server speaks {PROTOCOL_VERSION})")
+    kind = _field(header, "kind", str)
+    rid = header_id(header)
+    used: set[int] = set()
+    msg: Message
+    if kind == "infer":
+        robot = _field(header, "robot", str)
+        model = _field(header, "model", str)
+        obs = _field(header, "obs", dict)
+        images_ref = _field(obs, "images", dict, "obs.")
+        images = {}
+        for cam, ref in images_ref.items():
+            if not isinstance(cam, str):
+                raise ProtocolError(ErrorCode.BAD_REQUEST, "obs.images: camera names must be strings")
+            images[cam] = decode_array(ref, frames, f"obs.images.{cam}", used)
+        state = decode_array(_field(obs, "state", dict, "obs."), frames, "obs.state", used)
+        instruction = obs.get("instruction", "")
+        if not isinstance(instruction, str):
+            raise ProtocolError(ErrorCode.BAD_REQUEST, f"obs.instruction: expected str, got {type(instruction).__name__}")
+        msg = InferRequest(id=rid, robot=robot, model=model, images=images, state=state, instruction=instruction)
+    elif kind == "reply":
+        timings = header.get("timings", {})
+        msg = InferReply(id=rid, model=str(header.get("model", "")),
+                         actions=decode_array(_field(header, "actions", dict), frames, "actions", used),
+                         timings=Timings(**{k: float(v) for k, v in timings.items() if k in Timings.__dataclass_fields__}))
+    elif kind == "error":
+        code = _field(header, "code", str)
+        try:
+            code_enum = ErrorCode(code)
+        except ValueError:
+            code_enum = ErrorCode.INTERNAL
+        msg = ErrorReply(id=rid, code=code_enum, message=str(header.get("message", "")))
+    elif kind == "hello":
+        msg = Hello(id=rid)
+    elif kind == "metadata":
+        models = _field(header, "models", dict)
+        try:
+            infos = {name: ModelInfo.from_wire(info) for name, info in models.items()}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProtocolError(ErrorCode.BAD_REQUEST, f"models: malformed model description ({exc})") from None
+        msg = Metadata(id=rid, protocol=int(header.get("protocol", PROTOCOL_VERSION)), models=infos)
+    elif kind == "ping":
+        msg = Ping(id=rid)
+    elif kind == "pong":
+        msg = Pong(id=rid)
+    else:
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"kind: unknown message kind {kind!r}")
+    if len(used) != len(frames) - 1:
+        raise ProtocolError(ErrorCode.BAD_REQUEST,
+                            f"message has {len(frames) - 1} array frames but the header references {len(used)}")
+    return msg
+
+
+def error_frames(request_id: str, code: ErrorCode, message: str) -> list[Frame]:
+    return encode(ErrorReply(id=request_id, code=code, message=message[:1024]))
+
+
+def message_bytes(frames: Sequence[Frame]) -> int:
+    return sum(len(f) for f in frames)

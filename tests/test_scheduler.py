@@ -1,0 +1,97 @@
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from services.executor.engine import MonolithicEngine, ServedModel
+from services.executor.scheduler import ModelQueues, Request, batch_size_for
+from shared.config import EngineConfig
+from shared.models import build_model
+from shared.protocol import ErrorCode, ProtocolError
+
+
+def req(model: str, rid: str, arrival: float, deadline: float, shape=(2, 64, 64, 3), state_dim=8, prompt_len=16) -> Request:
+    return Request(id=rid, robot="r", model=model, images=np.zeros(shape, np.uint8),
+                   state=np.zeros(state_dim, np.float32), tokens=np.zeros(prompt_len, np.int64),
+                   arrival=arrival, deadline=deadline)
+
+
+@pytest.mark.parametrize("pending,max_batch,expected", [(0, 2, 0), (1, 2, 1), (2, 2, 2), (3, 2, 2), (3, 4, 2),
+                                                        (5, 4, 4), (7, 8, 4), (8, 8, 8), (1, 1, 1), (9, 1, 1)])
+def test_batch_size_is_largest_power_of_two(pending, max_batch, expected):
+    assert batch_size_for(pending, max_batch) == expected
+
+
+def test_esf_picks_head_closest_to_deadline():
+    q = ModelQueues(["a", "b"], policy="esf", shed_expired=False)
+    q.put(req("a", "a1", 0.0, 100.0))
+    q.put(req("b", "b1", 1.0, 50.0))  # arrived later, tighter deadline
+    model, batch, _ = q.take(2, now=2.0)
+    assert model == "b" and [r.id for r in batch] == ["b1"]
+
+
+def test_rr_alternates_and_lqf_prefers_longer_queue():
+    rr = ModelQueues(["a", "b"], policy="rr", shed_expired=False)
+    for i in range(4):
+        rr.put(req("a", f"a{i}", i, 1e9))
+        rr.put(req("b", f"b{i}", i, 1e9))
+    order = [rr.take(1, now=0)[0] for _ in range(4)]
+    assert order in (["a", "b", "a", "b"], ["b", "a", "b", "a"])
+    lqf = ModelQueues(["a", "b"], policy="lqf", shed_expired=False)
+    lqf.put(req("a", "a0", 0, 1e9))
+    for i in range(3):
+        lqf.put(req("b", f"b{i}", 1 + i, 1e9))
+    assert lqf.take(2, now=0)[0] == "b"
+
+
+def test_queue_bound_and_unknown_model_and_shedding():
+    q = ModelQueues(["a"], max_queue=2)
+    q.put(req("a", "1", 0, 10))
+    q.put(req("a", "2", 0, 10))
+    with pytest.raises(ProtocolError) as e:
+        q.put(req("a", "3", 0, 10))
+    assert e.value.code == ErrorCode.OVERLOADED
+    with pytest.raises(ProtocolError) as e:
+        q.put(req("zzz", "4", 0, 10))
+    assert e.value.code == ErrorCode.UNKNOWN_MODEL
+    model, batch, expired = q.take(2, now=11)
+    assert batch == [] and [r.id for r in expired] == ["1", "2"]
+
+
+def test_monolithic_engine_serves_batches_equal_to_eager():
+    model = build_model("toy", seed=1)
+    results = []
+    done = threading.Event()
+
+    def sink(rs):
+        results.extend(rs)
+        if len(results) >= 5:
+            done.set()
+
+    eng = MonolithicEngine({"toy": ServedModel("toy", model, 1.0)}, EngineConfig(max_batch=2), torch.device("cpu"), sink)
+    eng.prepare()
+    rng = np.random.default_rng(0)
+    now = time.monotonic()
+    reqs = []
+    for i in range(5):
+        r = req("toy", str(i), now, now + 60)
+        r.images = rng.integers(0, 256, r.images.shape, dtype=np.uint8)
+        r.state = rng.standard_normal(8).astype(np.float32)
+        r.noise = rng.standard_normal((10, 7)).astype(np.float32)
+        reqs.append(r)
+        eng.submit(r)
+    stop = threading.Event()
+    t = threading.Thread(target=eng.run, args=(stop,))
+    t.start()
+    assert done.wait(30)
+    stop.set()
+    t.join(10)
+    assert sorted(r.request.id for r in results) == [str(i) for i in range(5)]
+    for res in results:
+        r = res.request
+        with torch.inference_mode():
+            ref = model.action_stage(model.vlm_stage(torch.from_numpy(r.images)[None], torch.from_numpy(r.state)[None],
+                                                     torch.from_numpy(r.tokens)[None]), torch.from_numpy(r.noise)[None])[0]
+        np.testing.assert_allclose(res.actions, ref.numpy(), rtol=1e-4, atol=1e-5)
