@@ -13,7 +13,7 @@ import threading
 import time
 from pathlib import Path
 
-from shared.config import ConfigError, load_config
+from shared.config import ConfigError, dial_address, load_config
 
 DEFAULT_DEMO = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
 
@@ -44,7 +44,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     try:
         t0 = time.monotonic()
         status = cluster.start(timeout_s=args.timeout)
-        print(f"robion is up in {time.monotonic() - t0:.1f} s: robots connect to {cfg.router.bind}; "
+        print(f"robion is up in {time.monotonic() - t0:.1f} s: robots connect to {dial_address(cfg.router.bind)}; "
               f"models {sorted(status['table']['models'])} on executors {sorted(status['executors'])}. Ctrl-C stops it.",
               flush=True)
         _wait_for_signal()
@@ -93,7 +93,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
 
     cfg = _load(args.config)
     if args.action == "status":
-        status = control_status(cfg.control.bind, timeout_s=2.0)
+        status = control_status(dial_address(cfg.control.bind, cfg.control.connect), timeout_s=2.0)
         if status is None:
             print(f"control plane at {cfg.control.bind} does not answer", file=sys.stderr)
             return 1

@@ -13,7 +13,7 @@ from pathlib import Path
 import zmq
 
 from shared import control
-from shared.config import ClusterConfig
+from shared.config import ClusterConfig, dial_address
 
 log = logging.getLogger("robion.cluster")
 
@@ -59,7 +59,7 @@ class LocalCluster:
                 if p.poll() is not None:
                     self.stop()
                     raise RuntimeError(f"{name} exited with code {p.returncode} during start-up")
-            status = control_status(self.cfg.control.bind, timeout_s=0.5)
+            status = control_status(dial_address(self.cfg.control.bind, self.cfg.control.connect), timeout_s=0.5)
             if status and status.get("ready"):
                 return status
             time.sleep(0.1)

@@ -69,6 +69,7 @@ class EngineConfig:
 class RouterConfig:
     bind: str = "tcp://127.0.0.1:5555"  # robots connect here (DEALER)
     backend: str = "tcp://127.0.0.1:5556"  # executors connect here (DEALER)
+    backend_connect: str | None = None  # address executors dial when it differs from the bind (containers)
     max_message_bytes: int = field(default=16 * 1024 * 1024, metadata=_check(_positive, "expected a positive integer"))
     request_timeout_s: float = field(default=30.0, metadata=_check(_positive, "expected a positive number"))
 
@@ -76,6 +77,7 @@ class RouterConfig:
 @dataclass
 class ControlConfig:
     bind: str = "tcp://127.0.0.1:5557"
+    connect: str | None = None  # address other services dial when it differs from the bind (containers)
     heartbeat_s: float = field(default=0.5, metadata=_check(_positive, "expected a positive number"))
     missed_heartbeats: int = field(default=6, metadata=_check(_positive, "expected a positive integer"))
     state_dir: str = "state"
@@ -113,6 +115,13 @@ class ClusterConfig:
             if e.name == name:
                 return e
         raise KeyError(name)
+
+
+def dial_address(bind: str, connect: str | None = None) -> str:
+    """The address peers connect to: the explicit one, else the bind with wildcards made local."""
+    if connect:
+        return connect
+    return bind.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")
 
 
 ENGINE_KINDS = ("monolithic", "robion")

@@ -1,6 +1,7 @@
 """Control messages between services (single msgpack frames, never seen by robots).
 
-executor -> control plane: register {executor, device, models: {name: ModelInfo}}, heartbeat {executor, depths}
+executor -> control plane: register {executor, device, models: {name: ModelInfo}}, heartbeat {executor, depths},
+                           deregister {executor}
 router   -> control plane: table_get {version}       -> table {version, models, routes}
 anyone   -> control plane: status                    -> status {executors, table, router}
 executor -> router (backend, empty robot frame): executor_hello {executor}

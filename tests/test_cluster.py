@@ -116,3 +116,31 @@ def test_shutdown_is_clean(tmp_path):
     codes = c.stop()
     assert codes == {"executor[ex0]": 0, "router": 0, "control": 0}
     assert not any(c.alive().values())
+
+
+def test_scaled_out_replica_joins_and_leaves(tmp_path):
+    """An executor outside the config (a compose replica) registers by name and is routed to."""
+    import subprocess
+    import sys
+
+    path, _ = cluster_config(tmp_path, executors=[{"name": "ex0", "device": "cpu", "models": ["toy-a", "toy-b"]}])
+    cfg = load_config(path)
+    with LocalCluster(cfg, path, log_level="WARNING"):
+        extra = subprocess.Popen([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "replica-9",
+                                  "--models", "toy-b", "--log-level", "WARNING"])
+        try:
+            end = time.monotonic() + 60
+            while time.monotonic() < end and control_status(cfg.control.bind)["table"]["routes"]["toy-b"] != ["ex0", "replica-9"]:
+                time.sleep(0.2)
+            assert control_status(cfg.control.bind)["table"]["routes"]["toy-b"] == ["ex0", "replica-9"]
+            with RobotClient(cfg.router.bind) as client:
+                info = client.metadata()["toy-b"]
+                images, state = obs(info, np.random.default_rng(5))
+                assert all(client.infer("toy-b", images, state).ok for _ in range(6))
+        finally:
+            extra.terminate()
+            assert extra.wait(30) == 0
+        end = time.monotonic() + 10
+        while time.monotonic() < end and control_status(cfg.control.bind)["table"]["routes"]["toy-b"] != ["ex0"]:
+            time.sleep(0.2)
+        assert control_status(cfg.control.bind)["table"]["routes"]["toy-b"] == ["ex0"]

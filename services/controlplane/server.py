@@ -60,6 +60,9 @@ class ControlPlane:
             known = st.heartbeat(str(msg["executor"]), dict(msg.get("depths", {})))
             if not known:
                 self.sock.send_multipart([peer, control.pack("reregister")])
+        elif kind == "deregister":
+            st.deregister(str(msg.get("executor")))
+            log.info("executor %s left (table v%d)", msg.get("executor"), st.table.version)
         elif kind == "table_get":
             if msg.get("role") == "router":
                 st.router_seen = time.monotonic()

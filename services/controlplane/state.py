@@ -46,6 +46,10 @@ class ClusterState:
         ex.depths = depths
         return True
 
+    def deregister(self, name: str) -> None:
+        if self.executors.pop(name, None) is not None:
+            self._rebuild()
+
     def expire(self, now: float | None = None) -> list[str]:
         now = now or time.monotonic()
         gone = [n for n, e in self.executors.items() if now - e.last_seen > self.timeout_s]

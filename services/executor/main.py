@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import threading
 
 import torch
@@ -10,6 +11,7 @@ import torch
 from services.executor.engine import ServedModel, make_engine
 from services.executor.tokens import tokenizer_for
 from services.executor.transport import ExecutorIO, ServedInput
+from shared.config import ExecutorConfig
 from shared.models import build_model
 from shared.protocol import ModelInfo
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
@@ -17,15 +19,31 @@ from shared.service import load_or_exit, service_args, setup_logging, stop_event
 log = logging.getLogger("robion.executor")
 
 
+def _args(p) -> None:
+    p.add_argument("--name", default=os.environ.get("HOSTNAME", ""),
+                   help="executor name: one from the config, or a new one (then --models is needed); default $HOSTNAME")
+    p.add_argument("--models", help="comma-separated models for an executor not in the config (scaled-out replicas)")
+    p.add_argument("--device", help="override the device, e.g. cuda:1")
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = service_args("executor", argv, lambda p: p.add_argument("--name", required=True, help="executor name in the config"))
+    args = service_args("executor", argv, _args)
     setup_logging(f"executor[{args.name}]", args.log_level)
     cfg = load_or_exit(args.config)
     try:
         ex_cfg = cfg.executor(args.name)
     except KeyError:
-        log.error("no executor named %r in %s", args.name, args.config)
-        return 2
+        if not args.models or not args.name:
+            log.error("no executor named %r in %s; give --name and --models for a replica outside the config",
+                      args.name, args.config)
+            return 2
+        ex_cfg = ExecutorConfig(name=args.name, models=args.models.split(","))
+        unknown = [m for m in ex_cfg.models if m not in {mc.name for mc in cfg.models}]
+        if unknown:
+            log.error("--models: no models named %s in %s", unknown, args.config)
+            return 2
+    if args.device:
+        ex_cfg.device = args.device
     device = torch.device(ex_cfg.device)
     stop = stop_event(args.parent_pid)
 

@@ -20,7 +20,7 @@ import zmq
 from services.executor.engine import Engine
 from services.executor.scheduler import Request, Result
 from shared import control
-from shared.config import ClusterConfig
+from shared.config import ClusterConfig, dial_address
 from shared.models.base import ModelIO
 from shared.protocol import (ErrorCode, InferReply, InferRequest, ModelInfo, ProtocolError, Timings, decode, encode,
                              error_frames, header_id, message_bytes, unpack_header)
@@ -91,11 +91,11 @@ class ExecutorIO:
         self.backend.setsockopt(zmq.IDENTITY, name.encode())
         self.backend.setsockopt(zmq.LINGER, 1000)
         self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * cfg.router.max_message_bytes + 65536)
-        self.backend.connect(cfg.router.backend)
+        self.backend.connect(dial_address(cfg.router.backend, cfg.router.backend_connect))
 
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.LINGER, 0)
-        self.ctl.connect(cfg.control.bind)
+        self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
 
         addr = f"inproc://executor-wake-{id(self)}"
         self.wake_rx = self.ctx.socket(zmq.PAIR)
@@ -161,6 +161,9 @@ class ExecutorIO:
                 break
 
     def close(self) -> None:
+        # Leave the routing table now rather than after missed heartbeats.
+        self.ctl.send(control.pack("deregister", executor=self.name))
+        self.ctl.setsockopt(zmq.LINGER, 500)
         for s in (self.backend, self.ctl, self.wake_rx, self.wake_tx):
             s.close()
 

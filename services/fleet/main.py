@@ -7,6 +7,7 @@ import json
 import sys
 
 from services.fleet.robots import run_fleet
+from shared.config import dial_address
 from shared.service import load_or_exit, setup_logging
 
 
@@ -26,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging("fleet", args.log_level)
     cfg = load_or_exit(args.config)
     f = cfg.fleet
-    address = args.address or cfg.router.bind.replace("*", "127.0.0.1").replace("0.0.0.0", "127.0.0.1")
+    address = args.address or dial_address(cfg.router.bind)
     report = run_fleet(address, robots=args.robots or f.robots, hz=args.hz or f.hz,
                        duration_s=args.duration or f.duration_s, seed=f.seed if args.seed is None else args.seed,
                        network=args.network or f.network, models=f.models)

@@ -16,7 +16,7 @@ import zmq
 
 from services.router.routing import Routing
 from shared import control
-from shared.config import ClusterConfig
+from shared.config import ClusterConfig, dial_address
 from shared.control import RoutingTable
 from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, encode, error_frames, header_id,
                              message_bytes, unpack_header)
@@ -59,7 +59,7 @@ class Router:
 
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.LINGER, 0)
-        self.ctl.connect(cfg.control.bind)
+        self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
         self._last_table_poll = 0.0
         self._last_sweep = 0.0
 
