@@ -53,6 +53,11 @@ class ExecutorConfig:
     name: str
     models: list[str]
     device: str = "cpu"  # "cpu" or "cuda:N"
+    metrics_port: int | None = field(default=None, metadata=_check(_non_negative, "expected a port number (0 disables)"))
+    # None: 9110 + the executor's position in this list
+
+    def metrics_port_or_default(self, index: int) -> int:
+        return 9110 + index if self.metrics_port is None else self.metrics_port
 
 
 @dataclass
@@ -72,6 +77,7 @@ class RouterConfig:
     backend_connect: str | None = None  # address executors dial when it differs from the bind (containers)
     max_message_bytes: int = field(default=16 * 1024 * 1024, metadata=_check(_positive, "expected a positive integer"))
     request_timeout_s: float = field(default=30.0, metadata=_check(_positive, "expected a positive number"))
+    metrics_port: int = field(default=9100, metadata=_check(_non_negative, "expected a port number (0 disables)"))
 
 
 @dataclass
@@ -81,6 +87,7 @@ class ControlConfig:
     heartbeat_s: float = field(default=0.5, metadata=_check(_positive, "expected a positive number"))
     missed_heartbeats: int = field(default=6, metadata=_check(_positive, "expected a positive integer"))
     state_dir: str = "state"
+    metrics_port: int = field(default=9101, metadata=_check(_non_negative, "expected a port number (0 disables)"))
 
 
 @dataclass

@@ -127,7 +127,7 @@ def test_scaled_out_replica_joins_and_leaves(tmp_path):
     cfg = load_config(path)
     with LocalCluster(cfg, path, log_level="WARNING"):
         extra = subprocess.Popen([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "replica-9",
-                                  "--models", "toy-b", "--log-level", "WARNING"])
+                                  "--models", "toy-b", "--metrics-port", "0", "--log-level", "WARNING"])
         try:
             end = time.monotonic() + 60
             while time.monotonic() < end and control_status(cfg.control.bind)["table"]["routes"]["toy-b"] != ["ex0", "replica-9"]:

@@ -11,6 +11,7 @@ import zmq
 from services.controlplane.state import ClusterState
 from shared import control
 from shared.config import ClusterConfig
+from shared.metrics import ControlMetrics, serve
 from shared.protocol import ModelInfo, ProtocolError
 
 log = logging.getLogger("robion.control")
@@ -24,6 +25,9 @@ class ControlPlane:
         self.sock = self.ctx.socket(zmq.ROUTER)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.bind(cfg.control.bind)
+        self.metrics = ControlMetrics()
+        serve(self.metrics.registry, cfg.control.metrics_port)
+        self._published: set[str] = set()
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
@@ -39,7 +43,18 @@ class ControlPlane:
                         log.exception("bad control message")
             for name in self.state.expire():
                 log.warning("executor %s missed its heartbeats: removed from routing", name)
+            self._update_metrics()
         self.sock.close(linger=0)
+
+    def _update_metrics(self) -> None:
+        live = set(self.state.executors)
+        for name in self._published - live:
+            self.metrics.executor_up.labels(name).set(0)
+        for name in live:
+            self.metrics.executor_up.labels(name).set(1)
+        self._published |= live
+        self.metrics.executors.set(len(live))
+        self.metrics.table_version.set(self.state.table.version)
 
     def _handle(self, frames: list[bytes]) -> None:
         peer, body = frames[0], frames[-1]

@@ -12,6 +12,7 @@ from services.executor.engine import ServedModel, make_engine
 from services.executor.tokens import tokenizer_for
 from services.executor.transport import ExecutorIO, ServedInput
 from shared.config import ExecutorConfig
+from shared.metrics import ExecutorMetrics, serve
 from shared.models import build_model
 from shared.protocol import ModelInfo
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
@@ -24,6 +25,7 @@ def _args(p) -> None:
                    help="executor name: one from the config, or a new one (then --models is needed); default $HOSTNAME")
     p.add_argument("--models", help="comma-separated models for an executor not in the config (scaled-out replicas)")
     p.add_argument("--device", help="override the device, e.g. cuda:1")
+    p.add_argument("--metrics-port", type=int, help="override the /metrics port (0 disables)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,7 +67,10 @@ def main(argv: list[str] | None = None) -> int:
         transport.on_results(results)
 
     engine = make_engine(models, cfg.engine, device, on_results)
-    transport = ExecutorIO(args.name, cfg, ex_cfg.device, served, engine)
+    metrics = ExecutorMetrics(args.name, ex_cfg.device, {n: s.slo_s for n, s in served.items()})
+    index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), 0)
+    serve(metrics.registry, args.metrics_port if args.metrics_port is not None else ex_cfg.metrics_port_or_default(index))
+    transport = ExecutorIO(args.name, cfg, ex_cfg.device, served, engine, metrics)
     engine.prepare()
     engine_stop = threading.Event()
     engine_thread = threading.Thread(target=engine.run, args=(engine_stop,), name="engine", daemon=True)

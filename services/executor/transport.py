@@ -21,6 +21,7 @@ from services.executor.engine import Engine
 from services.executor.scheduler import Request, Result
 from shared import control
 from shared.config import ClusterConfig, dial_address
+from shared.metrics import ExecutorMetrics
 from shared.models.base import ModelIO
 from shared.protocol import (ErrorCode, InferReply, InferRequest, ModelInfo, ProtocolError, Timings, decode, encode,
                              error_frames, header_id, message_bytes, unpack_header)
@@ -77,7 +78,7 @@ def reply_frames(res: Result, now: float) -> list:
 
 class ExecutorIO:
     def __init__(self, name: str, cfg: ClusterConfig, device: str, served: dict[str, ServedInput], engine: Engine,
-                 context: zmq.Context | None = None):
+                 metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None):
         self.name = name
         self.cfg = cfg
         self.device = device
@@ -86,6 +87,7 @@ class ExecutorIO:
         self.ctx = context or zmq.Context.instance()
         self.results: queue.SimpleQueue[list[Result]] = queue.SimpleQueue()
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
+        self.metrics = metrics or ExecutorMetrics(name, device, {n: s.slo_s for n, s in served.items()})
 
         self.backend = self.ctx.socket(zmq.DEALER)
         self.backend.setsockopt(zmq.IDENTITY, name.encode())
@@ -151,7 +153,9 @@ class ExecutorIO:
             now = time.monotonic()
             if now - last_beat >= self.cfg.control.heartbeat_s:
                 last_beat = now
-                self.ctl.send(control.pack("heartbeat", executor=self.name, depths=self.engine.queues.depths()))
+                depths = self.engine.queues.depths()
+                self.ctl.send(control.pack("heartbeat", executor=self.name, depths=depths))
+                self._update_gauges(depths)
 
     def drain(self, timeout_s: float = 5.0) -> None:
         """After the engine stopped: send every remaining result so no request goes unanswered."""
@@ -167,6 +171,14 @@ class ExecutorIO:
         for s in (self.backend, self.ctl, self.wake_rx, self.wake_tx):
             s.close()
 
+    def _update_gauges(self, depths: dict[str, int]) -> None:
+        for model, depth in depths.items():
+            self.metrics.queue_depth.labels(model).set(depth)
+        if self.device.startswith("cuda"):
+            import torch
+
+            self.metrics.gpu_memory.labels(self.device).set(torch.cuda.memory_reserved(torch.device(self.device)))
+
     def _send_results(self) -> bool:
         sent = False
         while True:
@@ -175,13 +187,22 @@ class ExecutorIO:
             except queue.Empty:
                 return sent
             now = time.monotonic()
+            batches: dict[tuple[str, float], int] = {}
             for res in batch:
+                r = res.request
+                self.backend.send_multipart([r.envelope, *reply_frames(res, now)], copy=False)
+                sent = True
                 if res.error is not None:
                     self.stats["errors"] += 1
-                else:
-                    self.stats["replies"] += 1
-                self.backend.send_multipart([res.request.envelope, *reply_frames(res, now)], copy=False)
-                sent = True
+                    self.metrics.observe_result(r.model, res.error[0].value.lower(), now - r.arrival, 0, 0, 0)
+                    continue
+                self.stats["replies"] += 1
+                self.metrics.observe_result(r.model, "ok", now - r.arrival, res.admitted - r.arrival, res.vlm_s,
+                                            res.action_s)
+                key = (r.model, res.admitted)  # members of one batch share their admission time
+                batches[key] = batches.get(key, 0) + 1
+            for (model, _), size in batches.items():
+                self.metrics.observe_batch(model, size)
 
     def _on_request(self, frames: list[zmq.Frame]) -> None:
         arrival = time.monotonic()
@@ -190,6 +211,7 @@ class ExecutorIO:
         envelope = frames[0].bytes
         body = [f.buffer for f in frames[1:]]
         rid = ""
+        header: dict = {}
         try:
             header = unpack_header(body[0])
             rid = header_id(header)
@@ -205,6 +227,8 @@ class ExecutorIO:
             self.engine.submit(to_request(msg, served, envelope, arrival))
         except ProtocolError as exc:
             self.stats["errors"] += 1
+            model = header.get("model") if rid and isinstance(header.get("model"), str) else ""
+            self.metrics.requests.labels(model if model in self.served else "", exc.code.value.lower()).inc()
             self.backend.send_multipart([envelope, *error_frames(rid, exc.code, exc.message)], copy=False)
         except Exception as exc:  # never let one request take the executor down
             log.exception("failed to accept request %r", rid)

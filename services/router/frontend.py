@@ -18,6 +18,7 @@ from services.router.routing import Routing
 from shared import control
 from shared.config import ClusterConfig, dial_address
 from shared.control import RoutingTable
+from shared.metrics import RouterMetrics, serve
 from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, encode, error_frames, header_id,
                              message_bytes, unpack_header)
 
@@ -30,6 +31,7 @@ TABLE_POLL_S = 0.2
 @dataclass
 class InFlight:
     executor: str
+    model: str
     sent_at: float
 
 
@@ -40,6 +42,8 @@ class Router:
         self.routing = Routing()
         self.in_flight: dict[tuple[bytes, str], InFlight] = {}
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
+        self.metrics = RouterMetrics()
+        serve(self.metrics.registry, cfg.router.metrics_port)
         limit = cfg.router.max_message_bytes
 
         self.frontend = self.ctx.socket(zmq.ROUTER)
@@ -101,8 +105,10 @@ class Router:
 
     # ------------------------------------------------------------------ robots
 
-    def _reply_error(self, robot: bytes, rid: str, code: ErrorCode, message: str) -> None:
+    def _reply_error(self, robot: bytes, rid: str, code: ErrorCode, message: str, model: str = "") -> None:
         self.stats["errors"] += 1
+        # Only served model names become label values: robots cannot grow the series count.
+        self.metrics.requests.labels(model if self.routing.knows(model) else "", code.value.lower()).inc()
         self.frontend.send_multipart([robot, *error_frames(rid, code, message)], copy=False)
 
     def _from_robot(self, frames: list[zmq.Frame]) -> None:
@@ -149,9 +155,10 @@ class Router:
                 if exc.errno == zmq.EHOSTUNREACH:  # registered but not connected to us (yet / any more)
                     continue
                 raise
-            self.in_flight[key] = InFlight(executor, time.monotonic())
+            self.in_flight[key] = InFlight(executor, model, time.monotonic())
+            self.metrics.in_flight.set(len(self.in_flight))
             return
-        self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"no executor for {model!r} is reachable")
+        self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"no executor for {model!r} is reachable", model)
 
     # ------------------------------------------------------------------ executors
 
@@ -163,13 +170,20 @@ class Router:
         if not robot:  # an executor's own message (hello on connect); nothing to forward
             return
         try:
-            rid = header_id(unpack_header(body[0].buffer))
+            header = unpack_header(body[0].buffer)
         except ProtocolError:
             log.warning("executor %s sent an undecodable reply header", frames[0].bytes)
             return
-        if self.in_flight.pop((robot, rid), None) is None:
+        rid = header_id(header)
+        flight = self.in_flight.pop((robot, rid), None)
+        if flight is None:
             return  # already answered (timed out or executor declared gone): one answer per request
         self.stats["replies"] += 1
+        status = "ok" if header.get("kind") == "reply" else str(header.get("code", "internal")).lower()
+        self.metrics.requests.labels(flight.model, status).inc()
+        self.metrics.in_flight.set(len(self.in_flight))
+        if status == "ok":
+            self.metrics.latency.labels(flight.model).observe(time.monotonic() - flight.sent_at)
         self.frontend.send_multipart([robot, *body], copy=False)
 
     def _expire(self, now: float) -> None:
@@ -177,13 +191,14 @@ class Router:
         stale = [k for k, f in self.in_flight.items() if now - f.sent_at > timeout]
         for robot, rid in stale:
             f = self.in_flight.pop((robot, rid))
-            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {f.executor} did not answer within {timeout} s")
+            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {f.executor} did not answer within {timeout} s",
+                              f.model)
 
     def _fail_executor(self, executor: str) -> None:
         lost = [k for k, f in self.in_flight.items() if f.executor == executor]
         for robot, rid in lost:
-            del self.in_flight[(robot, rid)]
-            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {executor} went away")
+            f = self.in_flight.pop((robot, rid))
+            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {executor} went away", f.model)
         if lost:
             log.warning("executor %s left the routing table with %d requests in flight", executor, len(lost))
 
@@ -195,6 +210,8 @@ class Router:
             table = RoutingTable.from_wire(msg["table"])
             if table.version != self.routing.table.version:
                 gone = self.routing.update(table)
+                self.metrics.table_version.set(table.version)
+                self.metrics.executors.set(len({e for ex in table.routes.values() for e in ex}))
                 log.info("routing table v%d: %s", table.version,
                          {m: e for m, e in table.routes.items()})
                 for executor in gone:
