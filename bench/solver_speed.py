@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from services.controlplane.solver import PlanProblem, make_problem, solve  # noqa: E402
+from services.controlplane.solver import DEFAULT_TIME_LIMIT_S, PlanProblem, make_problem, solve  # noqa: E402
 
 SIZES = [(8, 4), (16, 8), (32, 16)]  # (models, GPUs)
 TARGETS_S = {(8, 4): 1.0, (32, 16): 10.0}
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "bench/results/solver_speed.json"))
     ap.add_argument("--instances", type=int, default=5, help="random instances per size and placement")
-    ap.add_argument("--time-limit", type=float, default=10.0, help="CP-SAT time limit per solve, seconds")
+    ap.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT_S, help="CP-SAT time limit per solve, seconds")
     ap.add_argument("--workers", type=int, default=None, help="CP-SAT workers (default: min(8, cores))")
     args = ap.parse_args(argv)
 
