@@ -46,6 +46,10 @@ class ModelConfig:
     tokenizer: str | None = None  # tokenizer file; a byte-level tokenizer when absent
     slo_ms: float = field(default=156.0, metadata=_check(_positive, "expected a positive number"))
     image_shape: list[int] | None = None  # wire image size [H, W, 3] when not the model's default
+    robots: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))  # population N_i
+    hz: float = field(default=2.0, metadata=_check(_positive, "expected a positive number"))  # request rate per robot
+    limit: int | None = field(default=None, metadata=_check(_positive, "expected a positive integer"))
+    # limit = C_i, robots of this model one GPU sustains at the target SLO attainment (measured when absent)
 
 
 @dataclass
@@ -88,6 +92,8 @@ class ControlConfig:
     missed_heartbeats: int = field(default=6, metadata=_check(_positive, "expected a positive integer"))
     state_dir: str = "state"
     metrics_port: int = field(default=9101, metadata=_check(_non_negative, "expected a port number (0 disables)"))
+    strategy: str = "ip"  # robot-to-GPU assignment: ip (integer program), smg, eps, none (round-robin per request)
+    solve_time_limit_s: float = field(default=5.0, metadata=_check(_positive, "expected a positive number"))
 
 
 @dataclass
@@ -131,6 +137,7 @@ def dial_address(bind: str, connect: str | None = None) -> str:
     return bind.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")
 
 
+STRATEGIES = ("ip", "smg", "eps", "none")
 ENGINE_KINDS = ("monolithic", "robion")
 POLICIES = ("esf", "rr", "lqf")
 NETWORKS = ("wifi7", "fast_cloud", "slow_cloud", "5g", "none")
@@ -240,6 +247,8 @@ def _validate(cfg: ClusterConfig) -> None:
         raise ConfigError(f"engine.kind: expected one of {', '.join(ENGINE_KINDS)}, got {cfg.engine.kind!r}")
     if cfg.engine.policy not in POLICIES:
         raise ConfigError(f"engine.policy: expected one of {', '.join(POLICIES)}, got {cfg.engine.policy!r}")
+    if cfg.control.strategy not in STRATEGIES:
+        raise ConfigError(f"control.strategy: expected one of {', '.join(STRATEGIES)}, got {cfg.control.strategy!r}")
     if cfg.fleet.network not in NETWORKS:
         raise ConfigError(f"fleet.network: expected one of {', '.join(NETWORKS)}, got {cfg.fleet.network!r}")
     for k, name in enumerate(cfg.fleet.models or []):

@@ -20,6 +20,8 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
+from shared.config import ClusterConfig, ConfigError, config_from_dict
+
 from services.controlplane.solver import (
     DEFAULT_TIME_LIMIT_S,
     STRATEGIES,
@@ -86,8 +88,27 @@ def problem_from_mapping(data: Any) -> PlanProblem:
     return PlanProblem(num_gpus, tuple(models))
 
 
+def problem_from_cluster(cfg: ClusterConfig, executors: Sequence[str] | None = None) -> PlanProblem:
+    """The assignment problem of a cluster config: GPU j is the j-th executor (of ``executors``, default all)."""
+    names = list(executors) if executors is not None else [e.name for e in cfg.executors]
+    hosts: dict[str, list[int]] = {}
+    for j, name in enumerate(names):
+        try:
+            placed = cfg.executor(name).models
+        except KeyError:
+            continue
+        for model in placed:
+            hosts.setdefault(model, []).append(j)
+    models = []
+    for i, m in enumerate(cfg.models):
+        if m.robots and m.limit is None:
+            raise PlanInputError(f"models[{i}].limit", f"{m.name} has {m.robots} robots but no robot limit")
+        models.append(ModelDemand(m.name, m.limit or 1, m.robots, tuple(hosts.get(m.name, ()))))
+    return PlanProblem(len(names), tuple(models))
+
+
 def load_planning_file(path: str | Path) -> PlanProblem:
-    """Parse a YAML planning file; PlanInputError carries a readable reason."""
+    """Parse a YAML planning file or a full cluster config; PlanInputError carries a readable reason."""
     try:
         text = Path(path).read_text()
     except OSError as e:
@@ -96,6 +117,11 @@ def load_planning_file(path: str | Path) -> PlanProblem:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise PlanInputError("", f"not valid YAML: {e}") from None
+    if isinstance(data, dict) and "executors" in data:
+        try:
+            return problem_from_cluster(config_from_dict(data))
+        except ConfigError as e:
+            raise PlanInputError("", str(e)) from None
     return problem_from_mapping(data)
 
 
@@ -133,7 +159,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="robion plan",
         description="Assign robots to GPUs from populations, robot limits and model placement.",
     )
-    ap.add_argument("file", help="planning file (YAML): gpus, models: {name: {limit, robots, gpus}}")
+    ap.add_argument("file", help="planning file (YAML: gpus, models: {name: {limit, robots, gpus}}) or a cluster config "
+                                 "(executors are the GPUs; models need robots and limit)")
     ap.add_argument("--strategy", choices=STRATEGIES, default="ip", help="ip (integer program, default), smg, eps")
     ap.add_argument("--json", action="store_true", help='print {"assignment", "objective", "feasible"} as JSON')
     ap.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT_S, help="solver time limit in seconds (ip)")

@@ -28,6 +28,7 @@ class ControlPlane:
         self.metrics = ControlMetrics()
         serve(self.metrics.registry, cfg.control.metrics_port)
         self._published: set[str] = set()
+        self._assigned: set[tuple[str, str]] = set()
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
@@ -54,6 +55,14 @@ class ControlPlane:
             self.metrics.executor_up.labels(name).set(1)
         self._published |= live
         self.metrics.executors.set(len(live))
+        quotas = self.state.table.quotas
+        for model, per in quotas.items():
+            for ex, n in per.items():
+                self.metrics.robots_assigned.labels(model, ex).set(n)
+        published = {(m, e) for m, per in quotas.items() for e in per}
+        for model, ex in self._assigned - published:
+            self.metrics.robots_assigned.labels(model, ex).set(0)
+        self._assigned = published
         self.metrics.table_version.set(self.state.table.version)
 
     def _handle(self, frames: list[bytes]) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+from services.controlplane.traffic import Quotas, assign
 from shared.config import ClusterConfig
 from shared.control import RoutingTable
 from shared.protocol import ModelInfo
@@ -28,6 +29,7 @@ class ClusterState:
         self.table = RoutingTable(version=0)
         self.router_seen = 0.0
         self.router_version = -1
+        self.quotas = Quotas({}, {})
 
     @property
     def timeout_s(self) -> float:
@@ -74,8 +76,16 @@ class ClusterState:
                 for model, info in ex.models.items():
                     models.setdefault(model, info)
                     routes.setdefault(model, []).append(name)
-        if models != self.table.models or routes != self.table.routes:
-            self.table = RoutingTable(version=self.table.version + 1, models=models, routes=routes)
+        if models == self.table.models and routes == self.table.routes:
+            return
+        # A new placement is a new solve: robots keep their executor only until then.
+        placement: dict[str, list[str]] = {}
+        for model, execs in routes.items():
+            for e in execs:
+                placement.setdefault(e, []).append(model)
+        self.quotas = assign(self.cfg, placement)
+        self.table = RoutingTable(version=self.table.version + 1, models=models, routes=routes,
+                                  quotas=self.quotas.robots, limits=self.quotas.limits)
 
     def status(self, now: float | None = None) -> dict:
         now = now or time.monotonic()

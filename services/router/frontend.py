@@ -148,7 +148,7 @@ class Router:
         if len(self.in_flight) >= MAX_IN_FLIGHT:
             return self._reply_error(robot, rid, ErrorCode.OVERLOADED, "too many requests in flight")
         self.stats["requests"] += 1
-        for executor in self.routing.candidates(model):
+        for executor in self.routing.candidates(model, robot):
             try:
                 self.backend.send_multipart([executor.encode(), robot, *body], copy=False)
             except zmq.ZMQError as exc:
