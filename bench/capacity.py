@@ -156,9 +156,8 @@ class Report:
                 raise SystemExit(f"--merge: {path} is not a {SCHEMA} file")
             for key in ("capacity", "complete", "ratios", "deadlines_ms", "curves"):
                 self.doc[key] = old.get(key, {})
-            # Settings and meta of earlier runs stay with their models.
-            self.doc["runs"] = old.get("runs", [{"settings": old.get("settings"), "meta": old.get("meta"),
-                                                 "models": sorted(old.get("capacity", {}))}])
+            # Settings and meta of earlier runs stay with the models they measured (settings.models).
+            self.doc["runs"] = [*old.get("runs", []), {"settings": old.get("settings"), "meta": old.get("meta")}]
 
     def point(self, model: str, engine: str, point: Point) -> None:
         self.doc["curves"].setdefault(model, {}).setdefault(engine, []).append(_point_dict(point))
