@@ -88,6 +88,25 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return plan_main(args.rest)
 
 
+BENCHMARKS = {"capacity": "capacity.py", "router-hop": "router_hop.py", "solver": "solver_speed.py",
+              "models": "model_latency.py", "engine-gap": "engine_gap.py"}
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    import runpy
+
+    script = Path(__file__).resolve().parent.parent / "bench" / BENCHMARKS[args.name]
+    if not script.exists():
+        print(f"benchmark script {script} is missing (run from a source checkout)", file=sys.stderr)
+        return 2
+    sys.argv = [str(script), *args.rest]
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    except SystemExit as exc:
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 1
+    return 0
+
+
 def cmd_ctl(args: argparse.Namespace) -> int:
     from shared.cluster import control_status
 
@@ -126,6 +145,12 @@ def main(argv: list[str] | None = None) -> int:
     plan = sub.add_parser("plan", help="solve robot-to-GPU assignment without starting anything", add_help=False)
     plan.add_argument("rest", nargs=argparse.REMAINDER)
     plan.set_defaults(fn=cmd_plan)
+
+    bench = sub.add_parser("bench", help="run a benchmark from bench/ (capacity, router-hop, solver, models, engine-gap)",
+                           add_help=False)
+    bench.add_argument("name", choices=sorted(BENCHMARKS))
+    bench.add_argument("rest", nargs=argparse.REMAINDER)
+    bench.set_defaults(fn=cmd_bench)
 
     ctl = sub.add_parser("ctl", help="talk to a running cluster's control plane")
     ctl.add_argument("action", choices=["status"])
