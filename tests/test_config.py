@@ -72,3 +72,39 @@ def test_cli_reports_config_errors_without_traceback(tmp_path):
     assert out.returncode == 2
     assert "models[1].slo_ms: expected a positive number" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def placed(placement, gpus=4):
+    return {"gpus": gpus, "placement": placement,
+            "models": [{"name": f"pi0-{i}", "arch": "toy", "seed": i} for i in range(2)]
+            + [{"name": f"xr0-{i}", "arch": "toy2", "seed": i} for i in range(2)]}
+
+
+def test_placement_shorthands(monkeypatch):
+    from shared.config import _expand_placement
+
+    mix = _expand_placement(placed("mix"))
+    assert [e["device"] for e in mix["executors"]] == ["cuda:0", "cuda:1", "cuda:2", "cuda:3"]
+    assert all(e["models"] == ["pi0-0", "pi0-1", "xr0-0", "xr0-1"] for e in mix["executors"])
+    groups = _expand_placement(placed({"groups": {"toy": 1, "toy2": 3}}))
+    assert [e["models"] for e in groups["executors"]] == [["pi0-0", "pi0-1"]] + [["xr0-0", "xr0-1"]] * 3
+    listed = _expand_placement(placed({"groups": [{"arch": "toy", "gpus": [0, 2]}, {"arch": "toy2", "gpus": [1, 3]}]}))
+    assert listed["executors"][2]["models"] == ["pi0-0", "pi0-1"]
+
+
+@pytest.mark.parametrize("placement,message", [
+    ({"groups": {"toy": 1, "toy2": 0}}, "placement.groups.toy2: expected a positive number of GPUs"),
+    ({"groups": [{"arch": "toy", "gpus": []}, {"arch": "toy2", "gpus": [1]}]}, "placement.groups[0].gpus: the group is empty"),
+    ({"groups": [{"arch": "ghost", "gpus": [0]}]}, "placement.groups[0].arch: no model of architecture 'ghost'"),
+    ({"groups": [{"arch": "toy", "gpus": [0, 1]}, {"arch": "toy2", "gpus": [1, 2]}]}, "placement.groups[1].gpus: GPU 1 is already"),
+    ({"groups": [{"arch": "toy", "gpus": [0, 9]}]}, "placement.groups[0].gpus: 9 is not a GPU index"),
+    ({"groups": {"toy": 2}}, "placement.groups: no group serves ['xr0-0', 'xr0-1']"),
+    ({"groups": {"toy": 1, "toy2": 1}}, "placement.groups: executors ['gpu2', 'gpu3'] are in no group"),
+    ("spread", "placement: expected 'mix' or {groups: ...}"),
+])
+def test_placement_errors(placement, message):
+    from shared.config import _expand_placement
+
+    with pytest.raises(ConfigError) as e:
+        _expand_placement(placed(placement))
+    assert str(e.value).startswith(message), str(e.value)
