@@ -42,6 +42,42 @@ class VLAModel(nn.Module):
 
     arch: str = ""  # registry name of the architecture, e.g. "pi0"
     io: ModelIO
+    # Names of the top-level child modules whose parameters belong to the action stage;
+    # every other parameter counts to the VLM stage (see stage_parameters()).
+    ACTION_MODULES: tuple[str, ...] = ()
+
+    def init_weights(self, generator: torch.Generator) -> None:
+        """Seeded random init, called by ``build_model`` after the model was materialised on
+        its device. The default re-runs each submodule's ``reset_parameters`` under the seed
+        held by ``generator``; zoo models override it with a generator-driven init."""
+        device = generator.device
+        devices = [device.index if device.index is not None else torch.cuda.current_device()] \
+            if device.type == "cuda" else []
+        with torch.random.fork_rng(devices=devices):
+            torch.manual_seed(generator.initial_seed())
+            for m in self.modules():
+                if hasattr(m, "reset_parameters"):
+                    m.reset_parameters()
+
+    def stage_parameters(self) -> dict[str, int]:
+        """Parameter counts per stage: ``{"vlm_params": n, "action_params": n}``.
+
+        Works on a model built on the meta device (no memory)."""
+        counts = {"vlm_params": 0, "action_params": 0}
+        for name, p in self.named_parameters():
+            key = "action_params" if name.split(".", 1)[0] in self.ACTION_MODULES else "vlm_params"
+            counts[key] += p.numel()
+        return counts
+
+    def handoff_spec(self, batch: int) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+        """Shape and dtype of every handoff tensor at a batch size, so an engine can allocate
+        static buffers before running anything. Batch is dim 0 of every handoff tensor.
+
+        The default runs the VLM stage once on example inputs; zoo models answer
+        analytically (no compute)."""
+        with torch.no_grad():
+            out = self.vlm_stage(*self.example_inputs(batch))
+        return {k: (tuple(v.shape), v.dtype) for k, v in out.items()}
 
     def vlm_stage(self, images: torch.Tensor, state: torch.Tensor, tokens: torch.Tensor) -> Handoff:
         raise NotImplementedError

@@ -45,15 +45,31 @@ def build_model(arch: str, size: str = "tiny", seed: int = 0, device: str | torc
     configs = getattr(cls, "CONFIGS", {})
     if size not in configs:
         raise KeyError(f"{arch} has no size {size!r}; sizes: {', '.join(sorted(configs))}")
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        model = cls(configs[size])
-    model.eval().requires_grad_(False)
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
     if dtype is None:
-        dtype = torch.bfloat16 if torch.device(device).type == "cuda" else torch.float32
-    return model.to(device=device, dtype=dtype)
+        dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
+    # Build on the meta device and materialise straight in the target dtype on the target
+    # device: a 4.7 B-parameter model never exists as fp32 on the host.
+    with torch.device("meta"):
+        model = cls(configs[size])
+    model = model.to(dtype=dtype).to_empty(device=device)
+    model.init_weights(torch.Generator(device).manual_seed(seed))
+    return model.eval().requires_grad_(False)
+
+
+def build_meta(arch: str, size: str = "full") -> VLAModel:
+    """The architecture on the meta device: shapes and parameter counts, no memory."""
+    cls = get_architecture(arch)
+    with torch.device("meta"):
+        return cls(cls.CONFIGS[size])
 
 
 def _load_builtin() -> None:
     # Importing the architecture modules runs their @register decorators.
+    import shared.models.groot_n15  # noqa: F401
+    import shared.models.pi0  # noqa: F401
+    import shared.models.smolvla  # noqa: F401
     import shared.models.toy  # noqa: F401
+    import shared.models.xr0  # noqa: F401
