@@ -145,7 +145,76 @@ if triton is not None:
         tl.store(out_ptr + row * stride_o + col, (a * u).to(out_ptr.dtype.element_ty), mask=m)
 
 
+    @triton.jit
+    def _attn_kernel(q_ptr, k_ptr, v_ptr, bias_ptr, o_ptr, M, L, H, sm_scale,
+                     q_sb, q_sh, q_sm, k_sb, k_sh, k_sl, v_sb, v_sh, v_sl, b_sb, b_sm, o_sb, o_sh, o_sm,
+                     HAS_BIAS: tl.constexpr, D: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
+        # One program per (batch, kv head, block of query rows); online softmax over key blocks.
+        pid_bh = tl.program_id(0)
+        pid_m = tl.program_id(1)
+        b = pid_bh // H
+        h = pid_bh % H
+        offs_m = pid_m * BLOCK_M + tl.arange(0, BLOCK_M)
+        offs_d = tl.arange(0, D)
+        m_ok = offs_m < M
+        q = tl.load(q_ptr + b * q_sb + h * q_sh + offs_m[:, None] * q_sm + offs_d[None, :], mask=m_ok[:, None],
+                    other=0.0)
+        m_i = tl.full([BLOCK_M], -float("inf"), tl.float32)
+        l_i = tl.zeros([BLOCK_M], tl.float32)
+        acc = tl.zeros([BLOCK_M, D], tl.float32)
+        for start in range(0, L, BLOCK_N):
+            offs_n = start + tl.arange(0, BLOCK_N)
+            n_ok = offs_n < L
+            k = tl.load(k_ptr + b * k_sb + h * k_sh + offs_n[:, None] * k_sl + offs_d[None, :], mask=n_ok[:, None],
+                        other=0.0)
+            s = tl.dot(q, tl.trans(k)) * sm_scale
+            if HAS_BIAS:
+                s += tl.load(bias_ptr + b * b_sb + offs_m[:, None] * b_sm + offs_n[None, :],
+                             mask=m_ok[:, None] & n_ok[None, :], other=0.0).to(tl.float32)
+            s = tl.where(n_ok[None, :], s, -float("inf"))
+            m_new = tl.maximum(m_i, tl.max(s, 1))
+            p = tl.exp(s - m_new[:, None])
+            alpha = tl.exp(m_i - m_new)
+            l_i = l_i * alpha + tl.sum(p, 1)
+            v = tl.load(v_ptr + b * v_sb + h * v_sh + offs_n[:, None] * v_sl + offs_d[None, :], mask=n_ok[:, None],
+                        other=0.0)
+            acc = acc * alpha[:, None] + tl.dot(p.to(v.dtype), v)
+            m_i = m_new
+        o = acc / l_i[:, None]
+        tl.store(o_ptr + b * o_sb + h * o_sh + offs_m[:, None] * o_sm + offs_d[None, :],
+                 o.to(o_ptr.dtype.element_ty), mask=m_ok[:, None])
+
+
 # --------------------------------------------------------------------------- API
+
+
+def attention_fits(q: torch.Tensor, rows: int, head_dim: int) -> bool:
+    """Whether the Triton attention kernel takes this call: few query rows per KV head (the
+    action stages), where library kernels leave most SMs idle (one program per 128 rows)."""
+    return triton_enabled(q) and head_dim in (64, 128, 256) and rows <= 1024 and q.dtype != torch.float32
+
+
+def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """q ``[B, H, M, D]`` (any strides, last dim contiguous), k/v ``[B, H, L, D]``, bias additive
+    ``[B or 1, 1, M or 1, L]`` -> out ``[B, M, H, D]`` memory order, returned as ``[B, H, M, D]``."""
+    b, h, m, d = q.shape
+    length = k.shape[2]
+    out = torch.empty(b, m, h, d, device=q.device, dtype=q.dtype).transpose(1, 2)
+    block_m = 16
+    has_bias = bias is not None
+    if has_bias:
+        b_sb = bias.stride(0) if bias.shape[0] > 1 else 0
+        b_sm = bias.stride(2) if bias.shape[2] > 1 else 0
+    else:
+        bias, b_sb, b_sm = q, 0, 0
+    grid = (b * h, triton.cdiv(m, block_m))
+    _attn_kernel[grid](q, k, v, bias, out, m, length, h, d ** -0.5,
+                       q.stride(0), q.stride(1), q.stride(2), k.stride(0), k.stride(1), k.stride(2),
+                       v.stride(0), v.stride(1), v.stride(2), b_sb, b_sm, out.stride(0), out.stride(1), out.stride(2),
+                       HAS_BIAS=has_bias, D=d, BLOCK_M=block_m,
+                       BLOCK_N=64 if d <= 128 else 32, num_warps=4, num_stages=2)
+    return out
+
 
 
 def split_qkv(qkv: torch.Tensor, n_q: int, n_kv: int, head_dim: int,

@@ -78,6 +78,10 @@ class CategoryLinear(nn.Module):
         self.weight = nn.Parameter(torch.zeros(embodiments, d_in, d_out))
         self.bias = nn.Parameter(torch.zeros(embodiments, d_out))
 
+    def init_parameters(self, generator: torch.Generator) -> None:
+        self.weight.normal_(0.0, self.weight.shape[1] ** -0.5, generator=generator)
+        self.bias.zero_()
+
     def forward(self, x: torch.Tensor, e: int) -> torch.Tensor:
         return torch.addmm(self.bias[e], x.reshape(-1, x.shape[-1]), self.weight[e]).view(*x.shape[:-1], -1)
 

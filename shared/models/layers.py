@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from shared.models.fused import gated_act, split_qkv  # noqa: F401 (re-exported)
+from shared.models.fused import attention_fits, gated_act, small_attention, split_qkv  # noqa: F401
 
 # --------------------------------------------------------------------------- init
 
@@ -45,6 +45,8 @@ def init_weights(module: nn.Module, generator: torch.Generator) -> None:
                 m.bias.zero_()
         elif isinstance(m, nn.Embedding):
             m.weight.normal_(0.0, 1.0, generator=generator)
+        elif hasattr(m, "init_parameters"):  # a module that knows its own fan-in
+            m.init_parameters(generator)
         elif isinstance(m, (RMSNorm, nn.LayerNorm)):
             if getattr(m, "weight", None) is not None:
                 m.weight.fill_(1.0)
@@ -187,7 +189,10 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Ten
     b, s, n_q, d = q.shape
     n_kv = k.shape[1]
     qh = q.reshape(b, s * (n_q // n_kv), n_kv, d).transpose(1, 2)
-    o = F.scaled_dot_product_attention(qh, k, v, attn_mask=bias)
+    if attention_fits(q, qh.shape[2], d):
+        o = small_attention(qh, k, v, bias)
+    else:
+        o = F.scaled_dot_product_attention(qh, k, v, attn_mask=bias)
     return o.transpose(1, 2).reshape(b, s, n_q * d)
 
 

@@ -238,9 +238,11 @@ class XR0(VLAModel):
         t = 1.0 - torch.arange(c.steps, device=dev, dtype=torch.float32) / c.steps
         t_hidden = F.silu(d.time_in(timestep_embedding(t * 1000, c.time_freqs).to(dtype)))
         t_mod = d.time_out(t_hidden).view(c.steps, 6, w)
-        one = torch.tensor([0, 1, 0, 0, 1, 0], device=dev, dtype=dtype)[:, None]
-        mods = [t_mod + (layer.table + one) for layer in d.layers]  # [steps, 6, w] each
-        final = d.final_table[None] + t_hidden[:, None] + torch.tensor([0, 1], device=dev, dtype=dtype)[:, None]
+        t_mod[:, 1] += 1  # the modulation is 1 + scale
+        t_mod[:, 4] += 1
+        mods = [t_mod + layer.table for layer in d.layers]  # [steps, 6, w] each
+        final = d.final_table[None] + t_hidden[:, None]
+        final[:, 1] += 1
         w_act, w_time = d.action_time_in.weight[:, :w], d.action_time_in.weight[:, w:]
         w_fold = w_act @ d.action_in.weight
         step_bias = F.linear(sincos_time(t, w).to(dtype), w_time, d.action_time_in.bias + w_act @ d.action_in.bias)

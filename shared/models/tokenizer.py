@@ -1,0 +1,100 @@
+"""Prompt text -> fixed-length token ids for the VLM stage.
+
+A robot sends the same instruction on every call, so ids are cached per instruction
+string (LRU). Without a tokenizer file, a byte-level fallback maps UTF-8 bytes to ids
+(enough for serving random-weight models and for the demo); with one, the real
+tokenizer is loaded from a local path: a Hugging Face ``tokenizer.json`` (package
+``tokenizers``) or a SentencePiece ``.model`` file (package ``sentencepiece``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from threading import Lock
+
+import torch
+
+PAD_ID = 0
+BOS_ID = 1
+_BYTE_OFFSET = 2  # ids 0 and 1 are pad and BOS
+
+
+class PromptTokenizer:
+    """Encodes prompts to ``prompt_len`` ids: BOS + text, right-padded with ``pad_id`` or truncated."""
+
+    def __init__(self, prompt_len: int, vocab_size: int, path: str | None = None, pad_id: int = PAD_ID,
+                 cache_size: int = 1024):
+        if prompt_len < 1:
+            raise ValueError("prompt_len must be >= 1")
+        self.prompt_len, self.vocab_size, self.path, self.pad_id = prompt_len, vocab_size, path, pad_id
+        self.cache_size = cache_size
+        self._cache: OrderedDict[str, tuple[int, ...]] = OrderedDict()
+        self._lock = Lock()  # the executor's I/O thread and others may share one tokenizer
+        self.hits = self.misses = 0
+        self._encode = self._load(path) if path else self._bytes
+
+    @classmethod
+    def for_model(cls, model, path: str | None = None, cache_size: int = 1024) -> "PromptTokenizer":
+        """The tokenizer matching a zoo model's prompt length, vocabulary and pad id."""
+        cfg = model.cfg
+        return cls(model.io.prompt_len, cfg.vocab, path, getattr(cfg, "pad_id", PAD_ID), cache_size)
+
+    # -- backends
+
+    def _bytes(self, text: str) -> list[int]:
+        span = self.vocab_size - _BYTE_OFFSET
+        if span < 1:
+            raise ValueError(f"vocab_size {self.vocab_size} too small for the byte tokenizer")
+        return [BOS_ID] + [_BYTE_OFFSET + b % span for b in text.encode("utf-8")]
+
+    def _load(self, path: str):
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"tokenizer file not found: {path}")
+        if path.endswith(".json"):
+            try:
+                from tokenizers import Tokenizer
+            except ImportError as e:
+                raise ImportError(f"loading {path} needs the 'tokenizers' package (pip install tokenizers)") from e
+            tok = Tokenizer.from_file(path)
+            size = tok.get_vocab_size()
+            encode = lambda text: tok.encode(text).ids  # noqa: E731
+        elif path.endswith(".model"):
+            try:
+                import sentencepiece as spm
+            except ImportError as e:
+                raise ImportError(f"loading {path} needs the 'sentencepiece' package "
+                                  "(pip install sentencepiece)") from e
+            sp = spm.SentencePieceProcessor(model_file=path)
+            size = sp.get_piece_size()
+            encode = lambda text: [sp.bos_id()] * (sp.bos_id() >= 0) + sp.encode(text)  # noqa: E731
+        else:
+            raise ValueError(f"unknown tokenizer format {path!r}: expected a tokenizers .json or a sentencepiece .model")
+        if size > self.vocab_size:
+            raise ValueError(f"tokenizer {path} has {size} ids but the model's vocabulary has {self.vocab_size}")
+        return encode
+
+    # -- API
+
+    def ids(self, text: str) -> tuple[int, ...]:
+        """Fixed-length ids of one prompt (cached)."""
+        with self._lock:
+            hit = self._cache.get(text)
+            if hit is not None:
+                self._cache.move_to_end(text)
+                self.hits += 1
+                return hit
+        ids = list(self._encode(text))[: self.prompt_len]
+        out = tuple(ids + [self.pad_id] * (self.prompt_len - len(ids)))
+        with self._lock:
+            self.misses += 1
+            self._cache[text] = out
+            if len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
+        return out
+
+    def __call__(self, texts: str | list[str]) -> torch.Tensor:
+        """int64 ``[prompt_len]`` for one string, ``[B, prompt_len]`` for a list."""
+        if isinstance(texts, str):
+            return torch.tensor(self.ids(texts), dtype=torch.int64)
+        return torch.tensor([self.ids(t) for t in texts], dtype=torch.int64).view(len(texts), self.prompt_len)

@@ -1,0 +1,80 @@
+"""Save and load a zoo model's own state dict as safetensors, with strict checks.
+
+A fine-tuned variant of an architecture is the same class with other weights: another
+seed (``build_model(arch, seed=7)``) or another file (``load_model(arch, path=...)``).
+Key names are the zoo's own (``model.state_dict()``); real checkpoints must be
+converted to them (see docs/models.md for the layout conventions).
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+
+from shared.models.base import VLAModel
+from shared.models.registry import build_model
+
+
+class WeightsError(ValueError):
+    """A checkpoint does not match the model: missing or unexpected keys, or wrong shapes."""
+
+
+def _names(names: list[str], limit: int = 8) -> str:
+    shown = ", ".join(sorted(names)[:limit])
+    return shown + (f", ... ({len(names) - limit} more)" if len(names) > limit else "")
+
+
+def save_weights(model: VLAModel, path: str) -> None:
+    """Write the model's state dict (in its current dtype) to a safetensors file."""
+    from safetensors.torch import save_file
+
+    tensors = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    save_file(tensors, path, metadata={"arch": model.arch, "format": "robion-zoo-1"})
+
+
+def load_weights(model: VLAModel, path: str) -> VLAModel:
+    """Load a safetensors file into ``model`` in place; keys and shapes must match exactly.
+
+    Tensors are cast to each parameter's dtype and device. Raises FileNotFoundError or
+    WeightsError (naming the offending keys) and leaves the model untouched on error.
+    """
+    from safetensors import safe_open
+
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"weights file not found: {path}")
+    expected = model.state_dict()
+    with safe_open(path, framework="pt", device="cpu") as f:
+        meta = f.metadata() or {}
+        keys = set(f.keys())
+        problems = []
+        missing = sorted(set(expected) - keys)
+        unexpected = sorted(keys - set(expected))
+        if missing:
+            problems.append(f"{len(missing)} missing key(s): {_names(missing)}")
+        if unexpected:
+            problems.append(f"{len(unexpected)} unexpected key(s): {_names(unexpected)}")
+        bad = []
+        for k in sorted(keys & set(expected)):
+            shape = tuple(f.get_slice(k).get_shape())
+            if shape != tuple(expected[k].shape):
+                bad.append(f"{k}: file {list(shape)} vs model {list(expected[k].shape)}")
+        if bad:
+            problems.append(f"{len(bad)} shape mismatch(es): " + "; ".join(bad[:8]) +
+                            (f"; ... ({len(bad) - 8} more)" if len(bad) > 8 else ""))
+        if problems:
+            arch = meta.get("arch")
+            hint = f" (file was saved from {arch!r}, model is {model.arch!r})" if arch and arch != model.arch else ""
+            raise WeightsError(f"{path} does not fit {model.arch or type(model).__name__}{hint}: " + " | ".join(problems))
+        with torch.no_grad():
+            for k, dst in expected.items():
+                dst.copy_(f.get_tensor(k).to(dtype=dst.dtype))
+    return model
+
+
+def load_model(arch: str, size: str = "full", path: str | None = None, seed: int = 0,
+               device: str | torch.device = "cpu", dtype: torch.dtype | None = None) -> VLAModel:
+    """Build an architecture and, when ``path`` is given, load its weights from that file."""
+    model = build_model(arch, size, seed=seed, device=device, dtype=dtype)
+    return load_weights(model, path) if path else model

@@ -1,0 +1,128 @@
+"""GPU checks of the model zoo (run on a GPU host: ``pytest -m gpu tests/gpu``)."""
+
+import pytest
+import torch
+
+from shared.models import build_model
+from shared.models import fused
+
+pytestmark = pytest.mark.gpu
+ARCHS = ["pi0", "smolvla", "groot_n15", "xr0"]
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+def _both_paths(fn):
+    old = fused.set_triton(True)
+    try:
+        fast = fn()
+        fused.set_triton(False)
+        ref = fn()
+    finally:
+        fused.set_triton(old)
+    return fast, ref
+
+
+@needs_cuda
+@pytest.mark.parametrize("n_q,n_kv,d,rope,qk_norm", [(8, 1, 256, True, False), (15, 5, 64, True, False),
+                                                     (16, 8, 128, True, True), (8, 8, 128, True, True),
+                                                     (16, 16, 72, False, False), (15, 0, 64, True, False)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_split_qkv_matches_reference(n_q, n_kv, d, rope, qk_norm, dtype):
+    g = torch.Generator(device="cuda").manual_seed(0)
+    b, s, extra = 2, 7, 5
+    qkv = torch.randn(b, s, (n_q + 2 * n_kv) * d, device="cuda", generator=g).to(dtype)
+    cos = sin = qn = kn = None
+    if rope:
+        ang = torch.rand(b, s, d // 2, device="cuda", generator=g) * 6
+        cos, sin = ang.cos(), ang.sin()
+    if qk_norm:
+        qn, kn = torch.rand(d, device="cuda", generator=g).to(dtype), torch.rand(d, device="cuda", generator=g).to(dtype)
+
+    def run():
+        cache = torch.zeros(b, 3, 2, max(n_kv, 1), s + extra, d, device="cuda", dtype=dtype)  # strided KV views
+        k_out, v_out = (cache[:, 1, 0, :, extra:], cache[:, 1, 1, :, extra:]) if n_kv else (None, None)
+        q = fused.split_qkv(qkv, n_q, n_kv, d, k_out, v_out, cos, sin, qn, kn)
+        return q, cache
+
+    (q1, c1), (q2, c2) = _both_paths(run)
+    tol = dict(atol=2e-2, rtol=2e-2) if dtype == torch.bfloat16 else dict(atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(q1, q2, **tol)
+    torch.testing.assert_close(c1, c2, **tol)
+
+
+@needs_cuda
+@pytest.mark.parametrize("act", ["gelu_tanh", "silu"])
+def test_gated_act_matches_reference(act):
+    x = torch.randn(3, 50, 2 * 4096, device="cuda", dtype=torch.bfloat16)
+    fast, ref = _both_paths(lambda: fused.gated_act(x, act))
+    torch.testing.assert_close(fast, ref, atol=2e-2, rtol=2e-2)
+
+
+@needs_cuda
+@pytest.mark.parametrize("arch", ARCHS)
+def test_tiny_fp32_triton_matches_reference(arch):
+    m = build_model(arch, "tiny", seed=0, device="cuda", dtype=torch.float32)
+    images, state, tokens = m.example_inputs(3, generator=torch.Generator().manual_seed(0))
+    tokens[1, 3:] = 0
+    noise = m.noise(3, generator=torch.Generator().manual_seed(1))
+    with torch.inference_mode():
+        fast, ref = _both_paths(lambda: m.action_stage(m.vlm_stage(images, state, tokens), noise))
+    torch.testing.assert_close(fast, ref, atol=1e-4, rtol=1e-4)
+
+
+@needs_cuda
+@pytest.mark.parametrize("arch", ARCHS)
+def test_full_graph_replay_equals_eager(arch):
+    torch.cuda.empty_cache()
+    m = build_model(arch, "full", seed=0, device="cuda")
+    b = 2
+    images, state, tokens = m.example_inputs(b, generator=torch.Generator().manual_seed(0))
+    tokens[0, 10:] = 0
+    noise = m.noise(b, generator=torch.Generator().manual_seed(1)).bfloat16()
+    with torch.inference_mode():
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(2):
+                eager_h = m.vlm_stage(images, state, tokens)
+                eager = m.action_stage(eager_h, noise)
+        torch.cuda.current_stream().wait_stream(side)
+        spec = m.handoff_spec(b)
+        assert {k: (tuple(v.shape), v.dtype) for k, v in eager_h.items()} == spec
+        g1, g2 = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
+        with torch.cuda.graph(g1):
+            h = m.vlm_stage(images, state, tokens)
+        with torch.cuda.graph(g2):
+            out = m.action_stage(h, noise)
+        images.copy_(torch.flip(images, dims=[2]))  # graphs must read the static inputs anew
+        g1.replay()
+        g2.replay()
+        eager2 = m.action_stage(m.vlm_stage(images, state, tokens), noise)
+        torch.cuda.synchronize()
+    assert torch.isfinite(out).all()
+    assert not torch.equal(eager, eager2)
+    torch.testing.assert_close(out.float(), eager2.float(), atol=1e-2, rtol=1e-2)
+    del m, g1, g2
+    torch.cuda.empty_cache()
+
+
+@needs_cuda
+@pytest.mark.parametrize("b,h,m,length,d,rows", [(1, 1, 400, 611, 256, 1), (2, 1, 408, 611, 256, 408),
+                                                 (2, 5, 150, 227, 64, 150), (3, 8, 32, 208, 128, 32),
+                                                 (1, 4, 20, 33, 64, 0)])
+def test_small_attention_matches_sdpa(b, h, m, length, d, rows):
+    import torch.nn.functional as F
+    from shared.models.layers import attn_bias
+
+    g = torch.Generator(device="cuda").manual_seed(0)
+    q = torch.randn(b, m, h, d, device="cuda", generator=g).bfloat16().transpose(1, 2)
+    kv = torch.randn(b, 2, 2, h, length + 3, d, device="cuda", generator=g).bfloat16()
+    k, v = kv[:, 1, 0, :, :length], kv[:, 1, 1, :, :length]
+    bias = None
+    if rows:
+        allowed = torch.rand(b, rows, length, device="cuda", generator=g) > 0.3
+        allowed[..., 0] = True
+        bias = attn_bias(allowed, 1, torch.bfloat16)
+    out = fused.small_attention(q, k, v, bias)
+    ref = F.scaled_dot_product_attention(q.float(), k.float(), v.float(), attn_mask=None if bias is None else bias.float())
+    torch.testing.assert_close(out.float(), ref, atol=2e-2, rtol=2e-2)

@@ -1,0 +1,137 @@
+"""The model zoo on the CPU: tiny configs for behaviour, full configs on the meta device for sizes."""
+
+import dataclasses
+import time
+
+import pytest
+import torch
+
+from shared.models import build_model, get_architecture, register
+from shared.models.registry import _ARCHS, build_meta
+
+ARCHS = ["pi0", "smolvla", "groot_n15", "xr0"]
+
+# Per-stage parameter counts from ../shared/docs/models.md.
+SPEC = {"pi0": (2.92e9, 315e6), "smolvla": (303e6, 100e6), "groot_n15": (1.33e9, 1.07e9), "xr0": (4.44e9, 0.28e9)}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    # Tiny models are launch-bound; extra threads only contend on a 2-core CI box.
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def run(m, images, state, tokens, noise):
+    with torch.no_grad():
+        return m.action_stage(m.vlm_stage(images, state, tokens), noise)
+
+
+def inputs(m, b, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    images, state, tokens = m.example_inputs(b, generator=g)
+    for i in range(b):  # different prompt lengths per sample exercise the padding masks
+        tokens[i, max(1, m.io.prompt_len - 2 * i - 1):] = 0
+    return images, state, tokens, m.noise(b, generator=g)
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_full_parameter_counts_match_spec(arch):
+    counts = build_meta(arch, "full").stage_parameters()
+    vlm, act = SPEC[arch]
+    assert abs(counts["vlm_params"] / vlm - 1) < 0.02, counts
+    assert abs(counts["action_params"] / act - 1) < 0.02, counts
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_full_io_is_two_cameras(arch):
+    m = build_meta(arch, "full")
+    assert len(m.io.cameras) == 2
+    wire = {"pi0": 224, "groot_n15": 224, "xr0": 256, "smolvla": 512}[arch]
+    assert m.io.image_shape == (wire, wire, 3)
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_tiny_shapes_speed_and_handoff_spec(arch):
+    m = build_model(arch, "tiny", seed=0)
+    images, state, tokens, noise = inputs(m, 2)
+    run(m, images, state, tokens, noise)  # first call pays one-off CPU kernel set-up
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        h = m.vlm_stage(images, state, tokens)
+        a = m.action_stage(h, noise)
+    assert time.perf_counter() - t0 < 1.0
+    assert a.shape == (2, m.io.horizon, m.io.action_dim) and a.dtype == torch.float32
+    assert torch.isfinite(a).all()
+    assert {k: (tuple(v.shape), v.dtype) for k, v in h.items()} == m.handoff_spec(2)
+    assert all(v.shape[0] == 2 for v in h.values())  # batch first in every handoff tensor
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_action_depends_on_handoff_and_noise(arch):
+    m = build_model(arch, "tiny", seed=0)
+    images, state, tokens, noise = inputs(m, 1)
+    with torch.no_grad():
+        h = m.vlm_stage(images, state, tokens)
+        a = m.action_stage(h, noise)
+        assert not torch.allclose(a, m.action_stage(h, noise + 0.5), atol=1e-4)
+        for key, t in h.items():
+            if t.dtype.is_floating_point:
+                other = dict(h, **{key: t + 0.5 * torch.randn_like(t)})
+                assert not torch.allclose(a, m.action_stage(other, noise), atol=1e-4), key
+        assert not torch.allclose(a, m.action_stage(m.vlm_stage(255 - images, state, tokens), noise), atol=1e-4)
+        tokens2 = tokens.clone()
+        tokens2[0, 1] = tokens[0, 1] % 100 + 101
+        assert not torch.allclose(a, m.action_stage(m.vlm_stage(images, state, tokens2), noise), atol=1e-4)
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_batch_equals_single_runs(arch):
+    m = build_model(arch, "tiny", seed=1)
+    images, state, tokens, noise = inputs(m, 3)
+    batched = run(m, images, state, tokens, noise)
+    for i in range(3):
+        single = run(m, images[i:i + 1], state[i:i + 1], tokens[i:i + 1], noise[i:i + 1])
+        torch.testing.assert_close(batched[i:i + 1], single, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_same_seed_same_model(arch):
+    a, b, c = (build_model(arch, "tiny", seed=s) for s in (5, 5, 6))
+    x = inputs(a, 2)
+    torch.testing.assert_close(run(a, *x), run(b, *x), atol=0, rtol=0)
+    assert not torch.allclose(run(a, *x), run(c, *x))
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_wire_size_other_than_model_size_is_resized(arch):
+    cls = get_architecture(arch)
+    cfg = dataclasses.replace(cls.CONFIGS["tiny"], image_size=48)
+    m = cls(cfg)
+    m.init_weights(torch.Generator().manual_seed(0))
+    m.eval()
+    images, state, tokens, noise = inputs(m, 2)
+    assert images.shape[2:] == (48, 48, 3)
+    assert torch.isfinite(run(m, images, state, tokens, noise)).all()
+
+
+def test_user_registered_architecture():
+    from shared.models.cli import describe
+    from shared.models.toy import ToyVLA
+
+    @register("my_test_vla")
+    class MyVLA(ToyVLA):
+        ACTION_MODULES = ("act_in", "time_in", "act_mlp", "act_out")
+
+    try:
+        m = build_model("my_test_vla", "tiny", seed=0)
+        images, state, tokens = m.example_inputs(2)
+        assert m.action_stage(m.vlm_stage(images, state, tokens), m.noise(2)).shape == (2, 10, 7)
+        listed = describe()
+        assert listed["my_test_vla"]["action_params"] > 0 and "toy" not in listed
+        with pytest.raises(ValueError):
+            register("my_test_vla")(ToyVLA)
+    finally:
+        _ARCHS.pop("my_test_vla", None)

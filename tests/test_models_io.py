@@ -1,0 +1,141 @@
+"""Prompts, weights files and the `robion models` listing."""
+
+import json
+import sys
+
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from shared.models import build_model
+from shared.models.cli import main as models_main
+from shared.models.tokenizer import PromptTokenizer
+from shared.models.weights import WeightsError, load_model, load_weights, save_weights
+
+
+# --------------------------------------------------------------------------- tokenizer
+
+def test_byte_tokenizer_pads_truncates_and_caches():
+    tok = PromptTokenizer(prompt_len=8, vocab_size=300)
+    ids = tok("pick")
+    assert ids.dtype == torch.int64 and ids.shape == (8,)
+    assert ids[0] == 1 and (ids[5:] == 0).all() and (ids[1:5] > 1).all()
+    long = tok("put the red block in the bowl")
+    assert long.shape == (8,) and (long != 0).all()
+    batch = tok(["pick", "place", "pick"])
+    assert batch.shape == (3, 8) and torch.equal(batch[0], batch[2])
+    assert tok.hits >= 2 and tok.misses == 3
+    assert int(tok("ünïcode ✓").max()) < 300
+
+
+def test_byte_tokenizer_cache_is_lru_bounded():
+    tok = PromptTokenizer(prompt_len=4, vocab_size=64, cache_size=2)
+    for text in ["a", "b", "c", "a"]:
+        tok(text)
+    assert len(tok._cache) == 2 and tok.misses == 4
+    assert int(tok("zzzz").max()) < 64
+
+
+def test_tokenizer_for_model_matches_io():
+    m = build_model("smolvla", "tiny")
+    tok = PromptTokenizer.for_model(m)
+    tokens = tok(["open the drawer", "close it"])
+    images, state, _ = m.example_inputs(2)
+    with torch.no_grad():
+        out = m.action_stage(m.vlm_stage(images, state, tokens), m.noise(2))
+    assert out.shape == (2, m.io.horizon, m.io.action_dim)
+
+
+def test_tokenizer_file_errors(tmp_path, monkeypatch):
+    with pytest.raises(FileNotFoundError, match="tokenizer file not found"):
+        PromptTokenizer(8, 100, path=str(tmp_path / "missing.json"))
+    bad = tmp_path / "vocab.txt"
+    bad.write_text("x")
+    with pytest.raises(ValueError, match="unknown tokenizer format"):
+        PromptTokenizer(8, 100, path=str(bad))
+    js = tmp_path / "tokenizer.json"
+    js.write_text("{}")
+    monkeypatch.setitem(sys.modules, "tokenizers", None)  # simulate the package being absent
+    with pytest.raises(ImportError, match="tokenizers"):
+        PromptTokenizer(8, 100, path=str(js))
+
+
+def test_real_tokenizer_json(tmp_path):
+    tokenizers = pytest.importorskip("tokenizers")
+    from tokenizers.models import WordLevel
+    from tokenizers.pre_tokenizers import Whitespace
+
+    t = tokenizers.Tokenizer(WordLevel({"<pad>": 0, "<unk>": 1, "pick": 2, "up": 3, "cup": 4}, unk_token="<unk>"))
+    t.pre_tokenizer = Whitespace()
+    path = str(tmp_path / "tokenizer.json")
+    t.save(path)
+    tok = PromptTokenizer(6, 100, path=path)
+    assert tok("pick up cup now").tolist() == [2, 3, 4, 1, 0, 0]
+    with pytest.raises(ValueError, match="vocabulary"):
+        PromptTokenizer(6, 3, path=path)
+
+
+# --------------------------------------------------------------------------- weights
+
+def test_weights_round_trip_is_a_fine_tuned_variant(tmp_path):
+    path = str(tmp_path / "pi0_ft.safetensors")
+    a, b = build_model("pi0", "tiny", seed=1), build_model("pi0", "tiny", seed=2)
+    save_weights(a, path)
+    images, state, tokens = a.example_inputs(2, generator=torch.Generator().manual_seed(0))
+    noise = a.noise(2)
+    with torch.no_grad():
+        before = b.action_stage(b.vlm_stage(images, state, tokens), noise)
+        load_weights(b, path)
+        after = b.action_stage(b.vlm_stage(images, state, tokens), noise)
+        want = a.action_stage(a.vlm_stage(images, state, tokens), noise)
+    assert not torch.allclose(before, want)
+    torch.testing.assert_close(after, want, atol=0, rtol=0)
+    c = load_model("pi0", "tiny", path=path)
+    torch.testing.assert_close(c.state_dict()["expert.norm.weight"], a.state_dict()["expert.norm.weight"])
+
+
+def test_weights_errors(tmp_path):
+    m = build_model("xr0", "tiny")
+    with pytest.raises(FileNotFoundError, match="weights file not found"):
+        load_weights(m, str(tmp_path / "nope.safetensors"))
+    sd = {k: v.clone() for k, v in m.state_dict().items()}
+
+    missing = dict(sd)
+    missing.pop("dit.sink")
+    save_file(missing, str(tmp_path / "missing.safetensors"))
+    with pytest.raises(WeightsError, match=r"1 missing key\(s\): dit.sink"):
+        load_weights(m, str(tmp_path / "missing.safetensors"))
+
+    extra = dict(sd, **{"dit.extra": torch.zeros(3)})
+    save_file(extra, str(tmp_path / "extra.safetensors"))
+    with pytest.raises(WeightsError, match=r"unexpected key\(s\): dit.extra"):
+        load_weights(m, str(tmp_path / "extra.safetensors"))
+
+    shaped = dict(sd, **{"dit.sink": torch.zeros(2, sd["dit.sink"].shape[1])})
+    save_file(shaped, str(tmp_path / "shape.safetensors"))
+    before = m.state_dict()["embed.weight"].clone()
+    with pytest.raises(WeightsError, match=r"shape mismatch.*dit.sink: file \[2, 32\] vs model \[1, 32\]"):
+        load_weights(m, str(tmp_path / "shape.safetensors"))
+    torch.testing.assert_close(m.state_dict()["embed.weight"], before)  # untouched on error
+
+    save_weights(build_model("smolvla", "tiny"), str(tmp_path / "other.safetensors"))
+    with pytest.raises(WeightsError, match="saved from 'smolvla', model is 'xr0'"):
+        load_weights(m, str(tmp_path / "other.safetensors"))
+
+
+# --------------------------------------------------------------------------- CLI
+
+def test_models_cli_json(capsys):
+    assert models_main(["--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert {"pi0", "smolvla", "groot_n15", "xr0"} <= set(info) and "toy" not in info
+    assert info["pi0"] == {"vlm_params": info["pi0"]["vlm_params"], "action_params": info["pi0"]["action_params"],
+                           "cameras": 2, "horizon": 50, "action_dim": 32, "steps": 10}
+    assert info["groot_n15"]["steps"] == 4 and info["xr0"]["horizon"] == 30
+    assert all(isinstance(v, int) for r in info.values() for v in r.values())
+
+
+def test_models_cli_table(capsys):
+    assert models_main([]) == 0
+    out = capsys.readouterr().out
+    assert "pi0" in out and "xr0" in out and "VLM params" in out
