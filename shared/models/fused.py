@@ -146,12 +146,16 @@ if triton is not None:
 
 
     @triton.jit
-    def _attn_kernel(q_ptr, k_ptr, v_ptr, bias_ptr, o_ptr, M, L, H, sm_scale,
+    def _attn_kernel(q_ptr, k_ptr, v_ptr, bias_ptr, o_ptr, part_ptr, ml_ptr, M, L, H, split_len, sm_scale,
                      q_sb, q_sh, q_sm, k_sb, k_sh, k_sl, v_sb, v_sh, v_sl, b_sb, b_sm, o_sb, o_sh, o_sm,
-                     HAS_BIAS: tl.constexpr, D: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
-        # One program per (batch, kv head, block of query rows); online softmax over key blocks.
+                     HAS_BIAS: tl.constexpr, SPLIT: tl.constexpr, D: tl.constexpr, BLOCK_M: tl.constexpr,
+                     BLOCK_N: tl.constexpr):
+        # One program per (batch x kv head, block of query rows, slice of the keys); online
+        # softmax over key blocks. With SPLIT the unnormalised partial results and their
+        # (max, sum) go to scratch and _attn_combine merges the slices (flash-decoding).
         pid_bh = tl.program_id(0)
         pid_m = tl.program_id(1)
+        pid_s = tl.program_id(2)
         b = pid_bh // H
         h = pid_bh % H
         offs_m = pid_m * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -162,9 +166,11 @@ if triton is not None:
         m_i = tl.full([BLOCK_M], -float("inf"), tl.float32)
         l_i = tl.zeros([BLOCK_M], tl.float32)
         acc = tl.zeros([BLOCK_M, D], tl.float32)
-        for start in range(0, L, BLOCK_N):
+        lo = pid_s * split_len
+        hi = tl.minimum(lo + split_len, L)
+        for start in range(lo, hi, BLOCK_N):
             offs_n = start + tl.arange(0, BLOCK_N)
-            n_ok = offs_n < L
+            n_ok = offs_n < hi
             k = tl.load(k_ptr + b * k_sb + h * k_sh + offs_n[:, None] * k_sl + offs_d[None, :], mask=n_ok[:, None],
                         other=0.0)
             s = tl.dot(q, tl.trans(k)) * sm_scale
@@ -180,7 +186,39 @@ if triton is not None:
                         other=0.0)
             acc = acc * alpha[:, None] + tl.dot(p.to(v.dtype), v)
             m_i = m_new
-        o = acc / l_i[:, None]
+        if SPLIT:
+            row = (pid_bh * tl.num_programs(2) + pid_s) * M + offs_m
+            tl.store(part_ptr + row[:, None] * D + offs_d[None, :], acc, mask=m_ok[:, None])
+            tl.store(ml_ptr + row * 2, m_i, mask=m_ok)
+            tl.store(ml_ptr + row * 2 + 1, l_i, mask=m_ok)
+        else:
+            o = acc / l_i[:, None]
+            tl.store(o_ptr + b * o_sb + h * o_sh + offs_m[:, None] * o_sm + offs_d[None, :],
+                     o.to(o_ptr.dtype.element_ty), mask=m_ok[:, None])
+
+    @triton.jit
+    def _attn_combine(part_ptr, ml_ptr, o_ptr, M, H, o_sb, o_sh, o_sm,
+                      NS: tl.constexpr, D: tl.constexpr, BLOCK_M: tl.constexpr):
+        pid_bh = tl.program_id(0)
+        pid_m = tl.program_id(1)
+        b = pid_bh // H
+        h = pid_bh % H
+        offs_m = pid_m * BLOCK_M + tl.arange(0, BLOCK_M)
+        offs_d = tl.arange(0, D)
+        m_ok = offs_m < M
+        m_max = tl.full([BLOCK_M], -float("inf"), tl.float32)
+        for sp in range(NS):
+            row = (pid_bh * NS + sp) * M + offs_m
+            m_max = tl.maximum(m_max, tl.load(ml_ptr + row * 2, mask=m_ok, other=-float("inf")))
+        acc = tl.zeros([BLOCK_M, D], tl.float32)
+        den = tl.zeros([BLOCK_M], tl.float32)
+        for sp in range(NS):
+            row = (pid_bh * NS + sp) * M + offs_m
+            w = tl.exp(tl.load(ml_ptr + row * 2, mask=m_ok, other=-float("inf")) - m_max)
+            w = tl.where(m_ok, w, 0.0)
+            den += w * tl.load(ml_ptr + row * 2 + 1, mask=m_ok, other=0.0)
+            acc += w[:, None] * tl.load(part_ptr + row[:, None] * D + offs_d[None, :], mask=m_ok[:, None], other=0.0)
+        o = acc / tl.where(m_ok, den, 1.0)[:, None]
         tl.store(o_ptr + b * o_sb + h * o_sh + offs_m[:, None] * o_sm + offs_d[None, :],
                  o.to(o_ptr.dtype.element_ty), mask=m_ok[:, None])
 
@@ -207,13 +245,43 @@ def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: tor
         b_sm = bias.stride(2) if bias.shape[2] > 1 else 0
     else:
         bias, b_sb, b_sm = q, 0, 0
-    grid = (b * h, triton.cdiv(m, block_m))
-    _attn_kernel[grid](q, k, v, bias, out, m, length, h, d ** -0.5,
+    block_n = 64 if d <= 128 else 32
+    # Split the keys so that about one wave of programs covers the GPU: with a single KV
+    # head (pi0) there are only ~25 query blocks, and a serial walk over all keys per
+    # program is latency-bound.
+    programs = b * h * triton.cdiv(m, block_m)
+    n_split = 1
+    while n_split * 2 * programs <= 2 * _sm_count(q.device) and n_split * 2 * block_n <= length and n_split < 8:
+        n_split *= 2
+    split_len = triton.cdiv(triton.cdiv(length, n_split), block_n) * block_n
+    n_split = triton.cdiv(length, split_len)
+    split = n_split > 1
+    if split:
+        part = torch.empty(b * h * n_split * m, d, device=q.device, dtype=torch.float32)
+        ml = torch.empty(b * h * n_split * m, 2, device=q.device, dtype=torch.float32)
+    else:
+        part = ml = out
+    grid = (b * h, triton.cdiv(m, block_m), n_split)
+    _attn_kernel[grid](q, k, v, bias, out, part, ml, m, length, h, split_len, d ** -0.5,
                        q.stride(0), q.stride(1), q.stride(2), k.stride(0), k.stride(1), k.stride(2),
                        v.stride(0), v.stride(1), v.stride(2), b_sb, b_sm, out.stride(0), out.stride(1), out.stride(2),
-                       HAS_BIAS=has_bias, D=d, BLOCK_M=block_m,
-                       BLOCK_N=64 if d <= 128 else 32, num_warps=4, num_stages=2)
+                       HAS_BIAS=has_bias, SPLIT=split, D=d, BLOCK_M=block_m, BLOCK_N=block_n,
+                       num_warps=4, num_stages=2)
+    if split:
+        _attn_combine[(b * h, triton.cdiv(m, block_m))](part, ml, out, m, h, out.stride(0), out.stride(1),
+                                                         out.stride(2), NS=n_split, D=d, BLOCK_M=block_m,
+                                                         num_warps=4)
     return out
+
+
+_SM_COUNT: dict[int, int] = {}
+
+
+def _sm_count(device: torch.device) -> int:
+    idx = device.index if device.index is not None else torch.cuda.current_device()
+    if idx not in _SM_COUNT:
+        _SM_COUNT[idx] = torch.cuda.get_device_properties(idx).multi_processor_count
+    return _SM_COUNT[idx]
 
 
 
