@@ -47,6 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.device:
         ex_cfg.device = args.device
     device = torch.device(ex_cfg.device)
+    if device.type == "cpu":
+        # Several executors usually share the host's cores; intra-op threads on small CPU models
+        # only contend with each other (ROBION_CPU_THREADS overrides).
+        torch.set_num_threads(int(os.environ.get("ROBION_CPU_THREADS", "1")))
     stop = stop_event(args.parent_pid)
 
     models: dict[str, ServedModel] = {}
