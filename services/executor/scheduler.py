@@ -38,6 +38,7 @@ class Result:
     vlm_s: float = 0.0
     action_s: float = 0.0
     done: float = field(default_factory=time.monotonic)
+    lockstep: int = -1  # index of the lockstep that ran its VLM stage (lockstep engines)
 
 
 def batch_size_for(pending: int, max_batch: int) -> int:
