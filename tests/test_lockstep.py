@@ -307,3 +307,19 @@ def test_helpers_and_config_validation():
         config_from_dict({**base, "engine": {"kind": "robion", "sm_policy": "static", "static_sms": 20}})
     with pytest.raises(ConfigError, match="sm_policy"):
         config_from_dict({**base, "engine": {"sm_policy": "sometimes"}})
+
+
+def test_multi_tensor_handoff_model_equals_eager():
+    import bench.models  # noqa: F401  (registers heavytoy)
+
+    model = build_model("heavytoy", "small", seed=3)
+    eng, sink = engine_for({"h": (model, 1.0)}, max_batch=2)
+    rng = np.random.default_rng(9)
+    for i in range(3):
+        r = make_req(model, str(i), rng)
+        r.model = "h"
+        eng.submit(r)
+    drive(eng)
+    assert sink.ids() == ["0", "1", "2"]
+    for res in sink.results:
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
