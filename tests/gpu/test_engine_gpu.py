@@ -151,6 +151,14 @@ def _check(models: dict, results: list[Result], n: int) -> float:
         rel = float(np.linalg.norm(res.actions - ref) / np.linalg.norm(ref))
         worst = max(worst, rel)
     assert worst < 3e-2, worst  # bf16 through 10 Euler steps, batched vs single
+    # The comparison must be able to fail: another request's observation (same noise) differs by more.
+    a, b = results[0].request, next(r.request for r in results if r.request.model == results[0].request.model
+                                    and r.request.id != results[0].request.id)
+    swapped = Request(**{**a.__dict__, "images": b.images, "state": b.state, "tokens": b.tokens})
+    ref, other = _eager(models[a.model], a), _eager(models[a.model], swapped)
+    sensitivity = float(np.linalg.norm(ref - other) / np.linalg.norm(ref))
+    print(f"worst relative error {worst:.2e}; another observation moves the actions by {sensitivity:.2e}")
+    assert sensitivity > 10 * max(worst, 1e-4)
     return worst
 
 
@@ -184,3 +192,25 @@ def test_each_model_alone_equals_eager():
     _serve(eng, reqs, results)
     _check({"h": h}, results, len(reqs))
     assert eng.telemetry.summary()["overlapping"] > 0
+
+
+def test_disjoint_split_gives_two_partitions():
+    from services.executor.sm import split_disjoint
+
+    part = split_disjoint(DEV, 64)
+    assert part.vlm_sms == 64 and part.action_sms == torch.cuda.get_device_properties(DEV).multi_processor_count - 64
+    a = torch.randn(8192, 8192, device=DEV, dtype=torch.bfloat16)
+    times = {}
+    for name, stream in (("vlm", part.vlm_stream), ("action", part.action_stream)):
+        stream.wait_stream(torch.cuda.current_stream())
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        with torch.cuda.stream(stream):
+            a @ a
+            start.record(stream)
+            for _ in range(5):
+                a @ a
+            end.record(stream)
+        end.synchronize()
+        times[name] = start.elapsed_time(end) / 5
+    print(f"disjoint split: {part.vlm_sms} SMs {times['vlm']:.2f} ms, {part.action_sms} SMs {times['action']:.2f} ms")
+    assert times["vlm"] > 1.3 * times["action"]
