@@ -323,3 +323,37 @@ def test_multi_tensor_handoff_model_equals_eager():
     assert sink.ids() == ["0", "1", "2"]
     for res in sink.results:
         np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
+
+
+def test_prestaged_and_mispredicted_batches_stage_the_right_observations():
+    model = build_model("toy", seed=1)
+    st = BufferedStages(model, CPU, [1, 2])
+    st.allocate()
+    rng = np.random.default_rng(10)
+    a = [make_req(model, f"a{i}", rng) for i in range(2)]
+    b = [make_req(model, f"b{i}", rng) for i in range(2)]
+    for predicted, admitted in ((a, a), (a, b), (b, [b[1], b[0]])):
+        st.prestage(2, predicted)
+        st.stage(2, admitted)
+        st.upload(2)
+        staged = st.dev_in[2].views
+        for i, r in enumerate(admitted):
+            np.testing.assert_array_equal(staged["images"][i].numpy(), r.images)
+            np.testing.assert_array_equal(staged["__noise__"][i].numpy(), r.noise)
+
+
+def test_peek_matches_take_without_side_effects():
+    from services.executor.scheduler import ModelQueues
+
+    q = ModelQueues(["a", "b"], policy="rr", shed_expired=False)
+    rng = np.random.default_rng(11)
+    model = build_model("toy")
+    for name in ("a", "b", "a"):
+        r = make_req(model, name, rng)
+        r.model = name
+        q.put(r)
+    for _ in range(3):
+        peeked = q.peek(2)
+        assert q.peek(2) == peeked  # peeking twice does not advance round-robin
+        model_name, batch, _ = q.take(2)
+        assert (model_name, batch) == peeked

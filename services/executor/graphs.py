@@ -44,11 +44,13 @@ class GraphStages(BufferedStages):
     """``BufferedStages`` whose VLM and action steps replay captured CUDA graphs."""
 
     def __init__(self, model: VLAModel, device: torch.device, batch_sizes: list[int], seed: int,
-                 pools: GraphPools, green: GreenStreams | None, capture_stream: torch.cuda.Stream):
+                 pools: GraphPools, green: GreenStreams | None, capture_stream: torch.cuda.Stream,
+                 action_stream: torch.cuda.Stream | None = None):
         super().__init__(model, device, batch_sizes, seed)
         self.pools = pools
         self.green = green
-        self.capture_stream = capture_stream  # unrestricted captures (action graphs, VLM level None)
+        self.capture_stream = capture_stream  # unrestricted VLM captures (level None)
+        self.action_stream = action_stream or capture_stream
         self.vlm_graphs: dict[tuple[int, Level], torch.cuda.CUDAGraph] = {}
         self.action_graphs: dict[int, torch.cuda.CUDAGraph] = {}
         self.capture_s = 0.0
@@ -76,7 +78,7 @@ class GraphStages(BufferedStages):
         t0 = time.perf_counter()
         for b in self.batch_sizes:
             if b not in self.action_graphs:
-                self.action_graphs[b] = self._capture(lambda b=b: self._action_body(b), self.capture_stream,
+                self.action_graphs[b] = self._capture(lambda b=b: self._action_body(b), self.action_stream,
                                                       self.pools.action)
         self.capture_s += time.perf_counter() - t0
 

@@ -41,7 +41,8 @@ class StageTimes:
     vlm_ms: float
     action_ms: float
     duration_ms: float
-    gap_us: float | None  # device idle before this lockstep (None when unknown)
+    gap_us: float | None  # device idle before this lockstep's first stage (None when unknown)
+    gap_last_us: float | None = None  # from the previous lockstep's end to this one's later stage start
 
 
 class HostRunner:
@@ -167,11 +168,13 @@ class CudaRunner:
             ends.append((a0 + act_ms, ev.act_end))
         first = min(t for t, _ in starts)
         last, ev.last_end = max(ends, key=lambda te: te[0])
-        gap_us = None
+        gap_us = gap_last_us = None
         prev = self._ring[(index - 1) % len(self._ring)]
         if after_previous and prev.last_end is not None:
-            gap_us = (prev.last_end.elapsed_time(ref) + first) * 1e3
-        return StageTimes(vlm_ms, act_ms, last - first, gap_us)
+            to_ref = prev.last_end.elapsed_time(ref)
+            gap_us = (to_ref + first) * 1e3
+            gap_last_us = (to_ref + max(t for t, _ in starts)) * 1e3
+        return StageTimes(vlm_ms, act_ms, last - first, gap_us, gap_last_us)
 
 
 @dataclass
@@ -258,7 +261,8 @@ class LockstepEngine(Engine):
         pools = GraphPools.create() if self._graphed() else None
         if self._graphed():
             self.stages = {name: GraphStages(m.model, self.device, self.batch_sizes, self.cfg.seed, pools, None,
-                                             self.runner.vlm_stream) for name, m in self.models.items()}
+                                             self.runner.vlm_stream, self.runner.action_stream)
+                           for name, m in self.models.items()}
         else:
             self.stages = {name: BufferedStages(m.model, self.device, self.batch_sizes, self.cfg.seed)
                            for name, m in self.models.items()}
@@ -383,6 +387,8 @@ class LockstepEngine(Engine):
         launch = _Launched(index, time.monotonic(), vlm, act, index & 1, level,
                            (launched - self._last_end) * 1e6 if self._back_to_back else None, self._back_to_back)
         self._index += 1
+        if admit:
+            self._prestage()
         self._book()  # the previous lockstep's replies and telemetry, while this one runs
         self._report_expired(expired)
         try:
@@ -399,6 +405,11 @@ class LockstepEngine(Engine):
         self._pending = vlm
         self._last = launch
         return True
+
+    def _prestage(self) -> None:
+        model, reqs = self.queues.peek(self.cfg.max_batch)
+        if reqs:
+            self.stages[model].prestage(len(reqs), reqs)
 
     def _book(self) -> None:
         done, self._last = self._last, None
@@ -417,7 +428,7 @@ class LockstepEngine(Engine):
             vlm_model=vlm.model if vlm else None, vlm_arch=vlm.stages.arch if vlm else None, vlm_batch=vlm.b if vlm else 0,
             action_model=act.model if act else None, action_arch=act.stages.arch if act else None,
             action_batch=act.b if act else 0, sm_level=done.level, duration_ms=t.duration_ms, vlm_ms=t.vlm_ms,
-            action_ms=t.action_ms, cpu_gap_us=done.cpu_gap_us, gpu_gap_us=t.gap_us))
+            action_ms=t.action_ms, cpu_gap_us=done.cpu_gap_us, gpu_gap_us=t.gap_us, gpu_gap_last_us=t.gap_last_us))
 
     def _emit(self, results: list[Result]) -> None:
         try:

@@ -110,8 +110,12 @@ class BufferedStages:
         self.batch_sizes = list(batch_sizes)
         self._noise_gen = torch.Generator().manual_seed(seed)
         self._cuda = device.type == "cuda"
-        self.host_in: dict[int, Pack] = {}
-        self.host_np: dict[int, dict[str, np.ndarray]] = {}
+        # Two pinned staging buffers per batch size: one may still feed an in-flight upload
+        # while the other is filled (prestaging the likely next batch during a lockstep).
+        self.host_in: dict[int, list[Pack]] = {}
+        self.host_np: dict[int, list[dict[str, np.ndarray]]] = {}
+        self._cur: dict[int, int] = {}
+        self._prestaged: dict[int, list[Request] | None] = {}
         self.dev_in: dict[int, Pack] = {}
         self.vlm_out: dict[int, Pack] = {}
         self.act_in: dict[int, Pack] = {}
@@ -130,9 +134,10 @@ class BufferedStages:
         """Allocate every buffer; one eager VLM pass per batch size reveals the handoff's layout."""
         for b in self.batch_sizes:
             specs = self.input_specs(b)
-            self.host_in[b] = Pack.allocate(specs, torch.device("cpu"), pin=self._cuda)
-            self.host_np[b] = {k: v.numpy() for k, v in self.host_in[b].views.items()}
-            self.dev_in[b] = Pack.allocate(specs, self.device) if self._cuda else self.host_in[b]
+            self.host_in[b] = [Pack.allocate(specs, torch.device("cpu"), pin=self._cuda) for _ in range(2)]
+            self.host_np[b] = [{k: v.numpy() for k, v in p.views.items()} for p in self.host_in[b]]
+            self._cur[b], self._prestaged[b] = 0, None
+            self.dev_in[b] = Pack.allocate(specs, self.device)
             images, state, tokens = self.model.example_inputs(b, self.device, torch.Generator().manual_seed(b))
             handoff = self.model.vlm_stage(images, state, tokens)
             if NOISE in handoff:
@@ -152,17 +157,37 @@ class BufferedStages:
             self.handoff(b)
 
     def stage(self, b: int, batch: list[Request]) -> None:
-        """Host side: copy a batch's observations (and noise) into the pinned staging buffers."""
-        np_in = self.host_np[b]
-        noise = self.host_in[b].views[NOISE]
+        """Host side: put a batch's observations (and noise) into a pinned staging buffer.
+
+        When ``prestage`` already copied exactly these requests, only the noise is written:
+        the image copies then happened while the GPU was busy, not between locksteps.
+        """
+        spare = 1 - self._cur[b]
+        pre, self._prestaged[b] = self._prestaged[b], None
+        hit = pre is not None and len(pre) == len(batch) and all(x is y for x, y in zip(pre, batch))
+        if not hit:
+            self._copy_observations(self.host_np[b][spare], batch)
+        np_in, noise = self.host_np[b][spare], self.host_in[b][spare].views[NOISE]
         for i, r in enumerate(batch):
-            np_in["images"][i] = r.images
-            np_in["state"][i] = r.state
-            np_in["tokens"][i] = r.tokens
             if r.noise is not None:
                 np_in[NOISE][i] = r.noise
             else:
                 torch.randn(self.io.horizon, self.io.action_dim, generator=self._noise_gen, out=noise[i])
+        self._cur[b] = spare
+
+    def prestage(self, b: int, batch: list[Request]) -> None:
+        """Copy the observations of the batch likely admitted next into the idle staging buffer.
+
+        Noise is not drawn here, so the seeded draws still follow admission order."""
+        self._copy_observations(self.host_np[b][1 - self._cur[b]], batch)
+        self._prestaged[b] = list(batch)  # references, not ids: a freed request's id can be reused
+
+    @staticmethod
+    def _copy_observations(np_in: dict[str, np.ndarray], batch: list[Request]) -> None:
+        for i, r in enumerate(batch):
+            np_in["images"][i] = r.images
+            np_in["state"][i] = r.state
+            np_in["tokens"][i] = r.tokens
 
     def capture_vlm(self, b: int, levels: set) -> None:
         """Eager stages have no graphs; an eager VLM is restricted by the stream it runs on."""
@@ -177,8 +202,7 @@ class BufferedStages:
         self._vlm_body(b)
 
     def upload(self, b: int) -> None:
-        if self._cuda:
-            self.dev_in[b].flat.copy_(self.host_in[b].flat, non_blocking=True)
+        self.dev_in[b].flat.copy_(self.host_in[b][self._cur[b]].flat, non_blocking=True)
 
     def handoff(self, b: int) -> None:
         self.act_in[b].flat.copy_(self.vlm_out[b].flat, non_blocking=True)

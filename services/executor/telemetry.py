@@ -40,6 +40,8 @@ class LockstepRecord:
     # Device idle time between the previous lockstep's last kernel and this one's first
     # (CUDA events; includes the host's wake-up latency). None on the CPU or after idling.
     gpu_gap_us: float | None = None
+    # Same, up to the later of the two stages' first kernel (what the second-launched stage loses).
+    gpu_gap_last_us: float | None = None
 
     @property
     def overlap_ms(self) -> float:
@@ -97,6 +99,7 @@ def summarize(records: list[LockstepRecord]) -> dict:
     """Gap percentiles over back-to-back locksteps and how often the stages overlapped."""
     cpu = [r.cpu_gap_us for r in records if r.cpu_gap_us is not None]
     gpu = [r.gpu_gap_us for r in records if r.gpu_gap_us is not None]
+    gpu_last = [r.gpu_gap_last_us for r in records if r.gpu_gap_last_us is not None]
     both = [r for r in records if r.vlm_batch and r.action_batch]
     return {
         "locksteps": len(records),
@@ -106,5 +109,6 @@ def summarize(records: list[LockstepRecord]) -> dict:
         "mean_duration_ms": float(np.mean([r.duration_ms for r in records])) if records else None,
         "cpu_gap_us": {"n": len(cpu), "median": _pct(cpu, 50), "p99": _pct(cpu, 99)},
         "gpu_gap_us": {"n": len(gpu), "median": _pct(gpu, 50), "p99": _pct(gpu, 99)},
+        "gpu_gap_last_us": {"n": len(gpu_last), "median": _pct(gpu_last, 50), "p99": _pct(gpu_last, 99)},
         "sm_levels": sorted({str(r.sm_level) for r in records if r.vlm_batch}),
     }
