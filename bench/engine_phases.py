@@ -71,7 +71,7 @@ def main() -> None:
                 spent[label].append((time.perf_counter() - t0) * 1e6)
         setattr(obj, attr, wrapper)
 
-    for attr in ("begin", "launch_action", "launch_vlm", "end_launch", "wait"):
+    for attr in ("begin", "launch_handoff", "launch_action", "launch_vlm", "end_launch", "wait"):
         timed(engine.runner, attr, f"runner.{attr}")
     timed(engine.queues, "take", "queues.take")
     for st in engine.stages.values():
@@ -89,6 +89,28 @@ def main() -> None:
     gpu = [r.gpu_gap_us for r in recs if r.gpu_gap_us is not None]
     rows["cpu_gap"] = {"median_us": float(np.median(cpu)), "p99_us": float(np.percentile(cpu, 99)), "n": len(cpu)}
     rows["gpu_gap"] = {"median_us": float(np.median(gpu)), "p99_us": float(np.percentile(gpu, 99)), "n": len(gpu)}
+    # Host cost of single launches, each on an idle GPU.
+    st = next(iter(engine.stages.values()))
+    runner = engine.runner
+    probes = {
+        "replay action graph b2": (runner.action_stream, lambda: st.action_graphs[2].replay()),
+        "replay VLM graph b2": (runner.vlm_stream, lambda: st.vlm_graphs[(2, next(lv for (b, lv) in st.vlm_graphs if b == 2))].replay()),
+        "handoff copy b2": (runner.action_stream, lambda: st.handoff(2)),
+        "D2H result b2": (runner.action_stream, lambda: st.host_out[2][0].copy_(st.dev_out[2], non_blocking=True)),
+        "event record": (runner.action_stream, lambda: torch.cuda.Event().record(runner.action_stream)),
+    }
+    for label, (stream, fn) in probes.items():
+        costs = []
+        for _ in range(60):
+            torch.cuda.set_stream(stream)
+            t0 = time.perf_counter()
+            fn()
+            costs.append((time.perf_counter() - t0) * 1e6)
+            torch.cuda.set_stream(torch.cuda.default_stream())
+            stream.synchronize()
+        rows[label] = {"median_us": float(np.median(costs[10:])), "p99_us": float(np.percentile(costs[10:], 99)), "n": 50}
+    rows["prestage hits/misses"] = {"median_us": float(sum(s.prestage_hits for s in engine.stages.values())),
+                                    "p99_us": float(sum(s.prestage_misses for s in engine.stages.values())), "n": 0}
     if args.out:
         with open(args.out, "w") as f:
             json.dump(rows, f, indent=1)

@@ -170,6 +170,7 @@ def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], 
                 samples = []
                 for i in range(warmup + repeats):
                     runner.begin(i)
+                    runner.launch_handoff(ast, ab)
                     runner.launch_action(ast, ab, 0)
                     runner.launch_vlm(vst, vb, level, after_handoff=ast is vst and ab == vb)
                     runner.end_launch()

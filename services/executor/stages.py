@@ -116,6 +116,7 @@ class BufferedStages:
         self.host_np: dict[int, list[dict[str, np.ndarray]]] = {}
         self._cur: dict[int, int] = {}
         self._prestaged: dict[int, list[Request] | None] = {}
+        self.prestage_hits = self.prestage_misses = 0
         self.dev_in: dict[int, Pack] = {}
         self.vlm_out: dict[int, Pack] = {}
         self.act_in: dict[int, Pack] = {}
@@ -165,21 +166,27 @@ class BufferedStages:
         spare = 1 - self._cur[b]
         pre, self._prestaged[b] = self._prestaged[b], None
         hit = pre is not None and len(pre) == len(batch) and all(x is y for x, y in zip(pre, batch))
-        if not hit:
+        if hit:
+            self.prestage_hits += 1
+        else:
+            self.prestage_misses += 1
             self._copy_observations(self.host_np[b][spare], batch)
-        np_in, noise = self.host_np[b][spare], self.host_in[b][spare].views[NOISE]
+        noise = self.host_in[b][spare].views[NOISE]
         for i, r in enumerate(batch):
-            if r.noise is not None:
-                np_in[NOISE][i] = r.noise
-            else:
+            if r.noise is None:  # engines that do not draw noise at submission
                 torch.randn(self.io.horizon, self.io.action_dim, generator=self._noise_gen, out=noise[i])
+            elif not hit:
+                self.host_np[b][spare][NOISE][i] = r.noise
         self._cur[b] = spare
 
     def prestage(self, b: int, batch: list[Request]) -> None:
-        """Copy the observations of the batch likely admitted next into the idle staging buffer.
-
-        Noise is not drawn here, so the seeded draws still follow admission order."""
-        self._copy_observations(self.host_np[b][1 - self._cur[b]], batch)
+        """Copy the observations (and fixed noise) of the batch likely admitted next into the
+        idle staging buffer."""
+        np_in = self.host_np[b][1 - self._cur[b]]
+        self._copy_observations(np_in, batch)
+        for i, r in enumerate(batch):
+            if r.noise is not None:
+                np_in[NOISE][i] = r.noise
         self._prestaged[b] = list(batch)  # references, not ids: a freed request's id can be reused
 
     @staticmethod
