@@ -46,6 +46,10 @@ class ModelConfig:
     tokenizer: str | None = None  # tokenizer file; a byte-level tokenizer when absent
     slo_ms: float = field(default=156.0, metadata=_check(_positive, "expected a positive number"))
     image_shape: list[int] | None = None  # wire image size [H, W, 3] when not the model's default
+    robots: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))  # population N_i
+    hz: float = field(default=2.0, metadata=_check(_positive, "expected a positive number"))  # request rate per robot
+    limit: int | None = field(default=None, metadata=_check(_positive, "expected a positive integer"))
+    # limit = C_i, robots of this model one GPU sustains at the target SLO attainment (measured when absent)
 
 
 @dataclass
@@ -53,6 +57,11 @@ class ExecutorConfig:
     name: str
     models: list[str]
     device: str = "cpu"  # "cpu" or "cuda:N"
+    metrics_port: int | None = field(default=None, metadata=_check(_non_negative, "expected a port number (0 disables)"))
+    # None: 9110 + the executor's position in this list
+
+    def metrics_port_or_default(self, index: int) -> int:
+        return 9110 + index if self.metrics_port is None else self.metrics_port
 
 
 @dataclass
@@ -77,16 +86,22 @@ class EngineConfig:
 class RouterConfig:
     bind: str = "tcp://127.0.0.1:5555"  # robots connect here (DEALER)
     backend: str = "tcp://127.0.0.1:5556"  # executors connect here (DEALER)
+    backend_connect: str | None = None  # address executors dial when it differs from the bind (containers)
     max_message_bytes: int = field(default=16 * 1024 * 1024, metadata=_check(_positive, "expected a positive integer"))
     request_timeout_s: float = field(default=30.0, metadata=_check(_positive, "expected a positive number"))
+    metrics_port: int = field(default=9100, metadata=_check(_non_negative, "expected a port number (0 disables)"))
 
 
 @dataclass
 class ControlConfig:
     bind: str = "tcp://127.0.0.1:5557"
+    connect: str | None = None  # address other services dial when it differs from the bind (containers)
     heartbeat_s: float = field(default=0.5, metadata=_check(_positive, "expected a positive number"))
     missed_heartbeats: int = field(default=6, metadata=_check(_positive, "expected a positive integer"))
     state_dir: str = "state"
+    metrics_port: int = field(default=9101, metadata=_check(_non_negative, "expected a port number (0 disables)"))
+    strategy: str = "ip"  # robot-to-GPU assignment: ip (integer program), smg, eps, none (round-robin per request)
+    solve_time_limit_s: float = field(default=5.0, metadata=_check(_positive, "expected a positive number"))
 
 
 @dataclass
@@ -123,6 +138,14 @@ class ClusterConfig:
         raise KeyError(name)
 
 
+def dial_address(bind: str, connect: str | None = None) -> str:
+    """The address peers connect to: the explicit one, else the bind with wildcards made local."""
+    if connect:
+        return connect
+    return bind.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")
+
+
+STRATEGIES = ("ip", "smg", "eps", "none")
 ENGINE_KINDS = ("monolithic", "robion")
 POLICIES = ("esf", "rr", "lqf")
 SM_POLICIES = ("table", "none", "static")
@@ -237,6 +260,8 @@ def _validate(cfg: ClusterConfig) -> None:
         raise ConfigError(f"engine.sm_policy: expected one of {', '.join(SM_POLICIES)}, got {cfg.engine.sm_policy!r}")
     if cfg.engine.sm_policy == "static" and (cfg.engine.static_sms <= 0 or cfg.engine.static_sms % 8):
         raise ConfigError("engine.static_sms: sm_policy static needs a positive multiple of 8")
+    if cfg.control.strategy not in STRATEGIES:
+        raise ConfigError(f"control.strategy: expected one of {', '.join(STRATEGIES)}, got {cfg.control.strategy!r}")
     if cfg.fleet.network not in NETWORKS:
         raise ConfigError(f"fleet.network: expected one of {', '.join(NETWORKS)}, got {cfg.fleet.network!r}")
     for k, name in enumerate(cfg.fleet.models or []):
@@ -244,8 +269,84 @@ def _validate(cfg: ClusterConfig) -> None:
             raise ConfigError(f"fleet.models[{k}]: no model named {name!r}")
 
 
+def _expand_placement(data: Any) -> Any:
+    """Turn the placement shorthands into an explicit executors list.
+
+    ``gpus: N`` makes executors gpu0..gpuN-1 on cuda:0..N-1 (or with ``device: cpu``-only hosts, give
+    ``executors`` instead). ``placement: mix`` puts every model on every executor (replication and
+    co-location); ``placement: {groups: {pi0: 2, xr0: 2}}`` or ``{groups: [{arch: pi0, gpus: [0, 1]}, ...]}``
+    splits the executors into disjoint groups, each serving every model of one architecture.
+    """
+    if not isinstance(data, dict) or ("gpus" not in data and "placement" not in data):
+        return data
+    data = dict(data)
+    gpus = data.pop("gpus", None)
+    placement = data.pop("placement", None)
+    models = data.get("models")
+    if not isinstance(models, list) or not all(isinstance(m, dict) for m in models):
+        raise ConfigError("models: expected a list of mappings")
+    if gpus is not None:
+        if "executors" in data:
+            raise ConfigError("gpus: give either gpus or executors, not both")
+        if isinstance(gpus, bool) or not isinstance(gpus, int) or gpus < 1:
+            raise ConfigError("gpus: expected a positive integer")
+        data["executors"] = [{"name": f"gpu{j}", "device": f"cuda:{j}", "models": []} for j in range(gpus)]
+    executors = data.get("executors")
+    if not isinstance(executors, list) or not all(isinstance(e, dict) for e in executors):
+        raise ConfigError("executors: expected a list of mappings (or gpus: N)")
+    executors = [dict(e) for e in executors]
+    data["executors"] = executors
+    names = [m.get("name") for m in models]
+    if placement is None:
+        return data
+    if any(e.get("models") for e in executors):
+        raise ConfigError("placement: executors already list their models; use one or the other")
+    if placement == "mix":
+        for e in executors:
+            e["models"] = list(names)
+        return data
+    if not isinstance(placement, dict) or set(placement) != {"groups"}:
+        raise ConfigError("placement: expected 'mix' or {groups: ...}")
+    groups = placement["groups"]
+    if isinstance(groups, dict):  # {arch: number of GPUs}, assigned in order
+        spec, start = [], 0
+        for arch, count in groups.items():
+            if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+                raise ConfigError(f"placement.groups.{arch}: expected a positive number of GPUs")
+            spec.append({"arch": arch, "gpus": list(range(start, start + count))})
+            start += count
+        groups = spec
+    if not isinstance(groups, list):
+        raise ConfigError("placement.groups: expected a mapping {arch: gpus} or a list of {arch, gpus}")
+    used: dict[int, str] = {}
+    for g, group in enumerate(groups):
+        path = f"placement.groups[{g}]"
+        if not isinstance(group, dict) or set(group) != {"arch", "gpus"}:
+            raise ConfigError(f"{path}: expected {{arch, gpus}}")
+        arch, idx = group["arch"], group["gpus"]
+        if not isinstance(idx, list) or not idx:
+            raise ConfigError(f"{path}.gpus: the group is empty")
+        members = [m["name"] for m in models if m.get("arch") == arch]
+        if not members:
+            raise ConfigError(f"{path}.arch: no model of architecture {arch!r} to serve: the group is empty")
+        for j in idx:
+            if isinstance(j, bool) or not isinstance(j, int) or not 0 <= j < len(executors):
+                raise ConfigError(f"{path}.gpus: {j!r} is not a GPU index below {len(executors)}")
+            if j in used:
+                raise ConfigError(f"{path}.gpus: GPU {j} is already in the {used[j]} group; groups are disjoint")
+            used[j] = arch
+            executors[j]["models"] = list(members)
+    unserved = [m["name"] for m in models if m.get("arch") not in {gr["arch"] for gr in groups}]
+    if unserved:
+        raise ConfigError(f"placement.groups: no group serves {unserved}")
+    idle = [executors[j].get("name") for j in range(len(executors)) if j not in used]
+    if idle:
+        raise ConfigError(f"placement.groups: executors {idle} are in no group")
+    return data
+
+
 def config_from_dict(data: Any) -> ClusterConfig:
-    cfg = _build(ClusterConfig, data, "")
+    cfg = _build(ClusterConfig, _expand_placement(data), "")
     _validate(cfg)
     return cfg
 

@@ -199,7 +199,7 @@ def unpack_header(frame: Frame) -> dict[str, Any]:
     if len(frame) > MAX_HEADER_BYTES:
         raise ProtocolError(ErrorCode.TOO_LARGE, f"header is {len(frame)} bytes; the limit is {MAX_HEADER_BYTES}")
     try:
-        header = msgpack.unpackb(frame, raw=False, strict_map_key=True, max_buffer_size=MAX_HEADER_BYTES,
+        header = msgpack.unpackb(frame, raw=False, strict_map_key=True,
                                  max_str_len=MAX_HEADER_BYTES, max_bin_len=MAX_HEADER_BYTES,
                                  max_array_len=4096, max_map_len=1024, max_ext_len=0)
     except Exception as exc:  # msgpack raises several unrelated types on garbage

@@ -1,0 +1,314 @@
+"""Robot capacity per (model, engine) on one device: the paper's single-GPU experiment.
+
+Simulated robots run in-process against each engine (services/executor/simulation.py);
+the engines being compared run side by side in this process, their points interleaved
+(one point of each engine in turn) so all see the same machine state. Capacity is the
+largest robot count with SLO attainment >= --target (default 0.98).
+
+    python bench/capacity.py --models pi0,xr0 --engines robion,monolithic --size full \\
+        --device cuda:0 --hz 2 --epochs 5 --duration 10 --max-batch 2 \\
+        --out bench/results/capacity_single_gpu.json --plot bench/results/capacity_single_gpu.png
+
+Engines: a kind (``robion``), or ``label=kind:field=value:...`` with EngineConfig
+overrides, e.g. ``static=robion:sm_policy=static:static_sms=66`` or ``mb1=robion:max_batch=1``.
+Models: architecture names (``pi0``), or ``name=arch`` for several of one architecture.
+The JSON is rewritten after every point, so an interrupted run keeps what it measured;
+--merge keeps other models' results already in --out (run models one command each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import logging
+import os
+import platform
+import subprocess
+import sys
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from services.executor.simulation import (PAPER_DEADLINES_MS, CapacityResult, EngineHost, Point,  # noqa: E402
+                                          SimConfig, _json_safe, compare_capacity, engine_factory,
+                                          served_models)
+
+SCHEMA = "robion.capacity/1"
+log = logging.getLogger("bench.capacity")
+
+
+@dataclasses.dataclass
+class EngineSpec:
+    label: str
+    kind: str
+    overrides: dict[str, Any]
+
+
+def _parse_value(field_type: Any, text: str) -> Any:
+    tp = field_type
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        if text.lower() in ("none", "null"):
+            return None
+        tp = next(a for a in typing.get_args(tp) if a is not type(None))
+    if tp is bool:
+        if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+            raise ValueError(f"expected true or false, got {text!r}")
+        return text.lower() in ("true", "1", "yes")
+    if tp in (int, float, str):
+        return tp(text)
+    return text
+
+
+def parse_engines(text: str, max_batch: int) -> list[EngineSpec]:
+    """``robion,static=robion:sm_policy=static:static_sms=66`` -> engine specs with typed EngineConfig overrides."""
+    from shared.config import EngineConfig
+
+    hints = typing.get_type_hints(EngineConfig)
+    specs: list[EngineSpec] = []
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        head = item.split(":")[0]
+        label, rest = item.split("=", 1) if "=" in head else (head, item)
+        parts = rest.split(":")
+        kind, opts = parts[0], parts[1:]
+        overrides: dict[str, Any] = {"max_batch": max_batch}
+        for opt in opts:
+            key, eq, value = opt.partition("=")
+            if not eq or key not in hints or key == "kind":
+                raise SystemExit(f"--engines {item!r}: {opt!r} is not field=value of EngineConfig "
+                                 f"(fields: {', '.join(k for k in hints if k != 'kind')})")
+            try:
+                overrides[key] = _parse_value(hints[key], value)
+            except ValueError as exc:
+                raise SystemExit(f"--engines {item!r}: {key}: {exc}") from None
+        if any(s.label == label for s in specs):
+            raise SystemExit(f"--engines: label {label!r} is used twice")
+        specs.append(EngineSpec(label, kind, overrides))
+    if not specs:
+        raise SystemExit("--engines: at least one engine is needed")
+    return specs
+
+
+def parse_models(text: str) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        name, _, arch = item.partition("=")
+        out[name] = arch or name
+    if not out:
+        raise SystemExit("--models: at least one model is needed")
+    return out
+
+
+def parse_deadlines(text: str | None) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for item in filter(None, (s.strip() for s in (text or "").split(","))):
+        key, eq, ms = item.partition("=")
+        if not eq:
+            raise SystemExit(f"--deadline {item!r}: expected name=ms")
+        out[key] = float(ms)
+    return out
+
+
+def _git(*args: str) -> str | None:
+    try:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def meta(device: str) -> dict:
+    import torch
+
+    gpu = None
+    if device.startswith("cuda") and torch.cuda.is_available():
+        gpu = torch.cuda.get_device_name(torch.device(device))
+    return {
+        "gpu": gpu, "device": device, "cpu": platform.processor() or platform.machine(), "host": platform.node(),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "commit": _git("rev-parse", "HEAD"), "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
+        "command": " ".join([os.path.relpath(sys.argv[0], ROOT) if sys.argv[0] else "bench/capacity.py",
+                             *sys.argv[1:]]),
+        "python": platform.python_version(), "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+    }
+
+
+def _point_dict(p: Point) -> dict:
+    return _json_safe(dataclasses.asdict(p))
+
+
+class Report:
+    """The JSON document; rewritten after every point so an interrupted run keeps its points."""
+
+    def __init__(self, path: Path | None, settings: dict, meta_: dict, merge: bool):
+        self.path = path
+        self.doc: dict = {"schema": SCHEMA, "target": settings["target"], "capacity": {}, "complete": {},
+                          "ratios": {}, "deadlines_ms": {}, "curves": {}, "settings": settings, "meta": meta_}
+        if merge and path is not None and path.exists():
+            old = json.loads(path.read_text())
+            if old.get("schema") != SCHEMA:
+                raise SystemExit(f"--merge: {path} is not a {SCHEMA} file")
+            for key in ("capacity", "complete", "ratios", "deadlines_ms", "curves"):
+                self.doc[key] = old.get(key, {})
+            # Settings and meta of earlier runs stay with the models they measured (settings.models).
+            self.doc["runs"] = [*old.get("runs", []), {"settings": old.get("settings"), "meta": old.get("meta")}]
+
+    def point(self, model: str, engine: str, point: Point) -> None:
+        self.doc["curves"].setdefault(model, {}).setdefault(engine, []).append(_point_dict(point))
+        self.doc["complete"].setdefault(model, {})[engine] = False
+        self.write()
+
+    def model_done(self, model: str, results: dict[str, CapacityResult], baseline: str | None) -> None:
+        self.doc["capacity"][model] = {e: r.capacity for e, r in results.items()}
+        self.doc["complete"][model] = {e: True for e in results}
+        self.doc["curves"][model] = {e: [_point_dict(p) for p in sorted(r.points, key=lambda p: p.robots)]
+                                     for e, r in results.items()}
+        if baseline in results:
+            base = results[baseline].capacity
+            self.doc["ratios"][model] = {f"{e}/{baseline}": (r.capacity / base if base else None)
+                                         for e, r in results.items() if e != baseline}
+        self.write()
+
+    def write(self) -> None:
+        if self.path is None:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(self.path.suffix + ".tmp")
+        tmp.write_text(json.dumps(_json_safe(self.doc), indent=1) + "\n")
+        tmp.replace(self.path)
+
+
+def plot(doc: dict, path: Path) -> bool:
+    """SLO attainment and p99 against robots: one column per model, one line per engine."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        import matplotlib.ticker
+    except ImportError:
+        log.warning("matplotlib is not installed: no plot written to %s", path)
+        return False
+    models = list(doc["curves"])
+    if not models:
+        return False
+    fig, axes = plt.subplots(2, len(models), figsize=(4.2 * len(models), 6.4), squeeze=False, sharex="col")
+    target = doc["target"]
+    deadlines = doc.get("deadlines_ms", {})
+    for j, model in enumerate(models):
+        ax_slo, ax_p99 = axes[0][j], axes[1][j]
+        for engine, pts in doc["curves"][model].items():
+            pts = sorted(pts, key=lambda p: p["robots"])
+            xs = [p["robots"] for p in pts]
+            cap = doc["capacity"].get(model, {}).get(engine)
+            label = f"{engine} (cap {cap})" if cap is not None else engine
+            line, = ax_slo.plot(xs, [100 * (p["slo_attainment"] or 0.0) for p in pts], marker="o", ms=3, label=label)
+            ax_p99.plot(xs, [p["p99_ms"] if p["p99_ms"] is not None else float("nan") for p in pts],
+                        marker="o", ms=3, color=line.get_color(), label=engine)
+        ax_slo.axhline(100 * target, color="grey", ls="--", lw=0.8)
+        ax_slo.set_title(model)
+        ax_slo.set_ylabel("SLO attainment (%)")
+        ax_slo.set_ylim(-2, 102)
+        ax_slo.legend(fontsize=7)
+        if model in deadlines:
+            ax_p99.axhline(deadlines[model], color="grey", ls="--", lw=0.8)
+        ax_p99.set_ylabel("p99 end-to-end latency (ms)")
+        ax_p99.set_yscale("log")  # overloaded points reach seconds; the deadline region must stay readable
+        ax_p99.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax_p99.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax_p99.set_xlabel("robots")
+    meta_ = doc.get("meta", {})
+    fig.suptitle(f"capacity at {100 * target:.0f}% SLO attainment - {meta_.get('gpu') or meta_.get('device')}",
+                 fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--models", required=True, help="comma-separated architectures, or name=arch")
+    p.add_argument("--engines", default="robion,monolithic",
+                   help="comma-separated engine kinds, or label=kind:field=value:... (EngineConfig overrides)")
+    p.add_argument("--size", default="full", help="model size: full or tiny")
+    p.add_argument("--device", default="cuda:0")
+    p.add_argument("--hz", type=float, default=2.0)
+    p.add_argument("--epochs", type=int, default=5)
+    p.add_argument("--duration", type=float, default=10.0, help="seconds of sending per epoch")
+    p.add_argument("--drain", type=float, default=1.0, help="seconds after each epoch for the last replies")
+    p.add_argument("--max-batch", type=int, default=2)
+    p.add_argument("--target", type=float, default=0.98)
+    p.add_argument("--network", default="wifi7")
+    p.add_argument("--deadline", help="deadline overrides, name=ms or arch=ms, comma-separated "
+                                      f"(default: the paper's, {PAPER_DEADLINES_MS})")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--start", type=int, default=1, help="first robot count of the search")
+    p.add_argument("--max-robots", type=int, default=256)
+    p.add_argument("--sweep", help="comma-separated robot counts: measure each (all epochs) instead of searching")
+    p.add_argument("--no-early-stop", action="store_true",
+                   help="search: run every epoch even once a point can no longer pass")
+    p.add_argument("--no-reuse", action="store_true", help="build and prepare a fresh engine for every point")
+    p.add_argument("--baseline", help="engine the ratios are taken against (default: monolithic when given)")
+    p.add_argument("--out", type=Path, help="JSON results file")
+    p.add_argument("--merge", action="store_true", help="keep other models' results already in --out")
+    p.add_argument("--plot", type=Path, help="PNG of the curves (needs matplotlib)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--log-level", default="WARNING")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+    models = parse_models(args.models)
+    engines = parse_engines(args.engines, args.max_batch)
+    deadlines = parse_deadlines(args.deadline)
+    robots = [int(x) for x in args.sweep.split(",") if x.strip()] if args.sweep else None
+    labels = [e.label for e in engines]
+    baseline = args.baseline or ("monolithic" if "monolithic" in labels else None)
+    if baseline is not None and baseline not in labels:
+        raise SystemExit(f"--baseline {baseline!r} is not one of the engines {labels}")
+    sim = SimConfig(epochs=args.epochs, duration_s=args.duration, drain_s=args.drain, seed=args.seed,
+                    network=args.network)
+
+    settings = {
+        "target": args.target, "hz": args.hz, "epochs": args.epochs, "duration_s": args.duration,
+        "drain_s": args.drain, "network": args.network, "max_batch": args.max_batch, "size": args.size,
+        "device": args.device, "seed": args.seed, "mode": "sweep" if robots else "search",
+        "sweep": robots, "start": args.start, "max_robots": args.max_robots, "early_stop": not args.no_early_stop,
+        "reuse_engine": not args.no_reuse, "baseline": baseline,
+        "models": models, "engines": {e.label: {"kind": e.kind, **e.overrides} for e in engines},
+    }
+    report = Report(args.out, settings, meta(args.device), args.merge)
+
+    for name, arch in models.items():
+        served = served_models({name: arch}, args.size, args.device, args.seed, deadlines)
+        report.doc["deadlines_ms"][name] = served[name].slo_s * 1e3
+        hosts = {e.label: EngineHost(engine_factory(e.kind, served, args.device, **e.overrides),
+                                     reuse=not args.no_reuse, label=e.label) for e in engines}
+        try:
+            results = compare_capacity(hosts, name, args.hz, sim, args.target, robots, args.start, args.max_robots,
+                                       early_stop=not args.no_early_stop, progress=not args.quiet,
+                                       on_point=lambda engine, pt, m=name: report.point(m, engine, pt))
+        finally:
+            for h in hosts.values():
+                h.close()
+            del served
+        report.model_done(name, results, baseline)
+        caps = ", ".join(f"{e} {r.capacity}" for e, r in results.items())
+        print(f"{name}: capacity at {100 * args.target:.0f}% SLO attainment: {caps}", flush=True)
+
+    if args.out:
+        print(f"wrote {args.out}")
+    if args.plot and plot(report.doc, args.plot):
+        print(f"wrote {args.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,19 @@
+"""Control-plane process: desired state from the config, executor registry, routing tables."""
+
+from __future__ import annotations
+
+from services.controlplane.server import ControlPlane
+from shared.service import load_or_exit, service_args, setup_logging, stop_event
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = service_args("control", argv)
+    setup_logging("control", args.log_level)
+    cfg = load_or_exit(args.config)
+    stop = stop_event(args.parent_pid)
+    ControlPlane(cfg).run(stop)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,188 @@
+"""`robion plan`: robot-to-GPU assignment from populations, limits and placement.
+
+Reads a minimal planning file (see docs/planning.md), solves it with the traffic
+controller and prints the assignment without starting anything:
+
+    python -m services.controlplane.planning FILE.yaml [--strategy ip|smg|eps] [--json]
+
+Exit codes: 0 assignment within the GPU limits, 1 infeasible (or, for smg/eps, an
+assignment that overloads a GPU; for ip also a time-out without any assignment),
+2 unreadable or invalid input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import yaml
+
+from shared.config import ClusterConfig, ConfigError, config_from_dict
+
+from services.controlplane.solver import (
+    DEFAULT_TIME_LIMIT_S,
+    STRATEGIES,
+    ModelDemand,
+    PlanInputError,
+    PlanProblem,
+    PlanResult,
+    solve,
+)
+
+_MODEL_KEYS = ("limit", "robots", "gpus")
+_TOP_KEYS = ("gpus", "models")
+
+
+def _int(value: Any, path: str, *, minimum: int, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise PlanInputError(path, f"expected a {what}, got {value!r}")
+    return value
+
+
+def problem_from_mapping(data: Any) -> PlanProblem:
+    """Build a PlanProblem from the parsed planning mapping, naming the bad field on error.
+
+    Shape: ``{"gpus": int >= 1, "models": {name: {"limit": int >= 1, "robots": int >= 0,
+    "gpus": [int, ...] (optional; omitted = every GPU)}}}``. Model order is kept.
+    """
+    if not isinstance(data, Mapping):
+        raise PlanInputError("", f"expected a mapping with keys {', '.join(_TOP_KEYS)}, got {type(data).__name__}")
+    for key in data:
+        if key not in _TOP_KEYS:
+            raise PlanInputError(str(key), f"unknown key (expected {', '.join(_TOP_KEYS)})")
+    if "gpus" not in data:
+        raise PlanInputError("gpus", "missing (number of GPUs)")
+    num_gpus = _int(data["gpus"], "gpus", minimum=1, what="positive integer")
+    models_raw = data.get("models")
+    if models_raw is None:
+        raise PlanInputError("models", "missing (mapping of model name to limit/robots/gpus)")
+    if not isinstance(models_raw, Mapping):
+        raise PlanInputError("models", f"expected a mapping of model name to settings, got {type(models_raw).__name__}")
+
+    models: list[ModelDemand] = []
+    for raw_name, spec in models_raw.items():
+        name = str(raw_name)
+        base = f"models.{name}"
+        if not isinstance(spec, Mapping):
+            raise PlanInputError(base, f"expected a mapping with {', '.join(_MODEL_KEYS)}, got {type(spec).__name__}")
+        for key in spec:
+            if key not in _MODEL_KEYS:
+                raise PlanInputError(f"{base}.{key}", f"unknown key (expected {', '.join(_MODEL_KEYS)})")
+        for key in ("limit", "robots"):
+            if key not in spec:
+                raise PlanInputError(f"{base}.{key}", "missing")
+        limit = _int(spec["limit"], f"{base}.limit", minimum=1, what="positive integer")
+        robots = _int(spec["robots"], f"{base}.robots", minimum=0, what="non-negative integer")
+        gpus_raw = spec.get("gpus")
+        if gpus_raw is None:
+            gpus = tuple(range(num_gpus))
+        else:
+            if not isinstance(gpus_raw, (list, tuple)):
+                raise PlanInputError(f"{base}.gpus", f"expected a list of GPU indices, got {gpus_raw!r}")
+            gpus = tuple(gpus_raw)
+        models.append(ModelDemand(name, limit, robots, gpus))
+    # PlanProblem validates the rest (GPU range, duplicates, robots without a host).
+    return PlanProblem(num_gpus, tuple(models))
+
+
+def problem_from_cluster(cfg: ClusterConfig, executors: Sequence[str] | None = None) -> PlanProblem:
+    """The assignment problem of a cluster config: GPU j is the j-th executor (of ``executors``, default all)."""
+    names = list(executors) if executors is not None else [e.name for e in cfg.executors]
+    hosts: dict[str, list[int]] = {}
+    for j, name in enumerate(names):
+        try:
+            placed = cfg.executor(name).models
+        except KeyError:
+            continue
+        for model in placed:
+            hosts.setdefault(model, []).append(j)
+    models = []
+    for i, m in enumerate(cfg.models):
+        if m.robots and m.limit is None:
+            raise PlanInputError(f"models[{i}].limit", f"{m.name} has {m.robots} robots but no robot limit")
+        models.append(ModelDemand(m.name, m.limit or 1, m.robots, tuple(hosts.get(m.name, ()))))
+    return PlanProblem(len(names), tuple(models))
+
+
+def load_planning_file(path: str | Path) -> PlanProblem:
+    """Parse a YAML planning file or a full cluster config; PlanInputError carries a readable reason."""
+    try:
+        text = Path(path).read_text()
+    except OSError as e:
+        raise PlanInputError("", f"cannot read file: {e.strerror or e}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise PlanInputError("", f"not valid YAML: {e}") from None
+    if isinstance(data, dict) and "executors" in data:
+        try:
+            return problem_from_cluster(config_from_dict(data))
+        except ConfigError as e:
+            raise PlanInputError("", str(e)) from None
+    return problem_from_mapping(data)
+
+
+def format_table(problem: PlanProblem, result: PlanResult) -> str:
+    """Models x GPUs robot counts, then each GPU's load as a share of its capacity."""
+    G = problem.num_gpus
+    name_w = max([len("model"), len("load")] + [len(m.name) for m in problem.models])
+    col_w = max(6, len(str(G - 1)) + 4)
+    header = f"{'model':<{name_w}}  {'limit':>5}  {'robots':>6}  " + "".join(f"{'GPU' + str(j):>{col_w}}" for j in range(G))
+    lines = [header, "-" * len(header)]
+    for m in problem.models:
+        row = result.assignment.get(m.name, {})
+        cells = "".join(
+            f"{(str(row.get(j, 0)) if j in m.gpus else '.'):>{col_w}}" for j in range(G)
+        )
+        lines.append(f"{m.name:<{name_w}}  {m.limit:>5}  {m.robots:>6}  {cells}")
+    lines.append("-" * len(header))
+    loads = "".join(f"{f'{100 * float(x):.0f}%':>{col_w}}" for x in result.gpu_load)
+    lines.append(f"{'load':<{name_w}}  {'':>5}  {'':>6}  {loads}")
+    return "\n".join(lines)
+
+
+def _summary(result: PlanResult) -> str:
+    parts = [f"strategy: {result.strategy}", f"objective: {result.objective}"]
+    if result.strategy == "ip":
+        proof = "proven optimal" if result.optimal else f"not proven optimal (lower bound {result.best_bound:g})"
+        parts.append(proof)
+    parts.append("within GPU limits" if result.feasible else "EXCEEDS GPU limits")
+    parts.append(f"solved in {result.solve_time_s:.3f}s")
+    return ", ".join(parts)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="robion plan",
+        description="Assign robots to GPUs from populations, robot limits and model placement.",
+    )
+    ap.add_argument("file", help="planning file (YAML: gpus, models: {name: {limit, robots, gpus}}) or a cluster config "
+                                 "(executors are the GPUs; models need robots and limit)")
+    ap.add_argument("--strategy", choices=STRATEGIES, default="ip", help="ip (integer program, default), smg, eps")
+    ap.add_argument("--json", action="store_true", help='print {"assignment", "objective", "feasible"} as JSON')
+    ap.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT_S, help="solver time limit in seconds (ip)")
+    args = ap.parse_args(argv)
+
+    try:
+        problem = load_planning_file(args.file)
+        result = solve(problem, args.strategy, time_limit_s=args.time_limit)
+    except PlanInputError as e:
+        print(f"robion plan: {args.file}: {e}", file=sys.stderr)
+        return 2
+
+    if args.json:
+        print(json.dumps(result.to_json_dict()))
+    elif result.assignment:
+        print(format_table(problem, result))
+        print(_summary(result))
+    if not result.feasible:
+        print(result.diagnosis or "infeasible", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

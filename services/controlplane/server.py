@@ -1,0 +1,99 @@
+"""The control plane's socket loop: registrations, heartbeats, routing tables, status."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import zmq
+
+from services.controlplane.state import ClusterState
+from shared import control
+from shared.config import ClusterConfig
+from shared.metrics import ControlMetrics, serve
+from shared.protocol import ModelInfo, ProtocolError
+
+log = logging.getLogger("robion.control")
+
+
+class ControlPlane:
+    def __init__(self, cfg: ClusterConfig, context: zmq.Context | None = None):
+        self.cfg = cfg
+        self.state = ClusterState(cfg)
+        self.ctx = context or zmq.Context.instance()
+        self.sock = self.ctx.socket(zmq.ROUTER)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.bind(cfg.control.bind)
+        self.metrics = ControlMetrics()
+        serve(self.metrics.registry, cfg.control.metrics_port)
+        self._published: set[str] = set()
+        self._assigned: set[tuple[str, str]] = set()
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            if self.sock.poll(100):
+                for _ in range(256):
+                    try:
+                        frames = self.sock.recv_multipart(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                    try:
+                        self._handle(frames)
+                    except Exception:
+                        log.exception("bad control message")
+            for name in self.state.expire():
+                log.warning("executor %s missed its heartbeats: removed from routing", name)
+            self._update_metrics()
+        self.sock.close(linger=0)
+
+    def _update_metrics(self) -> None:
+        live = set(self.state.executors)
+        for name in self._published - live:
+            self.metrics.executor_up.labels(name).set(0)
+        for name in live:
+            self.metrics.executor_up.labels(name).set(1)
+        self._published |= live
+        self.metrics.executors.set(len(live))
+        quotas = self.state.table.quotas
+        for model, per in quotas.items():
+            for ex, n in per.items():
+                self.metrics.robots_assigned.labels(model, ex).set(n)
+        published = {(m, e) for m, per in quotas.items() for e in per}
+        for model, ex in self._assigned - published:
+            self.metrics.robots_assigned.labels(model, ex).set(0)
+        self._assigned = published
+        self.metrics.table_version.set(self.state.table.version)
+
+    def _handle(self, frames: list[bytes]) -> None:
+        peer, body = frames[0], frames[-1]
+        try:
+            msg = control.unpack(body)
+        except ProtocolError as exc:
+            self.sock.send_multipart([peer, control.pack("error", message=exc.message)])
+            return
+        kind = msg.get("kind")
+        st = self.state
+        if kind == "register":
+            models = {n: ModelInfo.from_wire(i) for n, i in msg["models"].items()}
+            st.register(str(msg["executor"]), str(msg.get("device", "")), models)
+            log.info("executor %s registered on %s with %s (table v%d)", msg["executor"], msg.get("device"),
+                     sorted(models), st.table.version)
+            self.sock.send_multipart([peer, control.pack("registered", version=st.table.version)])
+        elif kind == "heartbeat":
+            known = st.heartbeat(str(msg["executor"]), dict(msg.get("depths", {})))
+            if not known:
+                self.sock.send_multipart([peer, control.pack("reregister")])
+        elif kind == "deregister":
+            st.deregister(str(msg.get("executor")))
+            log.info("executor %s left (table v%d)", msg.get("executor"), st.table.version)
+        elif kind == "table_get":
+            if msg.get("role") == "router":
+                st.router_seen = time.monotonic()
+                st.router_version = int(msg.get("version", -1))
+            newer = msg.get("version") != st.table.version
+            self.sock.send_multipart([peer, control.pack("table", table=st.table.to_wire() if newer else None)])
+        elif kind == "status":
+            self.sock.send_multipart([peer, control.pack("status", status=st.status())])
+        else:
+            self.sock.send_multipart([peer, control.pack("error", message=f"unknown kind {kind!r}")])

@@ -1,0 +1,102 @@
+"""The control plane's view of the cluster: registered executors and the routing table."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from services.controlplane.traffic import Quotas, assign
+from shared.config import ClusterConfig
+from shared.control import RoutingTable
+from shared.protocol import ModelInfo
+
+
+@dataclass
+class ExecutorState:
+    name: str
+    device: str
+    models: dict[str, ModelInfo]
+    last_seen: float
+    depths: dict[str, int] = field(default_factory=dict)
+
+
+class ClusterState:
+    """Executors come and go by heartbeat; the routing table follows, versioned."""
+
+    def __init__(self, cfg: ClusterConfig):
+        self.cfg = cfg
+        self.executors: dict[str, ExecutorState] = {}
+        self.table = RoutingTable(version=0)
+        self.router_seen = 0.0
+        self.router_version = -1
+        self.quotas = Quotas({}, {})
+
+    @property
+    def timeout_s(self) -> float:
+        return self.cfg.control.heartbeat_s * self.cfg.control.missed_heartbeats
+
+    def register(self, name: str, device: str, models: dict[str, ModelInfo], now: float | None = None) -> None:
+        self.executors[name] = ExecutorState(name, device, models, now or time.monotonic())
+        self._rebuild()
+
+    def heartbeat(self, name: str, depths: dict[str, int], now: float | None = None) -> bool:
+        """False when the executor is unknown (it must register again, e.g. after a control-plane restart)."""
+        ex = self.executors.get(name)
+        if ex is None:
+            return False
+        ex.last_seen = now or time.monotonic()
+        ex.depths = depths
+        return True
+
+    def deregister(self, name: str) -> None:
+        if self.executors.pop(name, None) is not None:
+            self._rebuild()
+
+    def expire(self, now: float | None = None) -> list[str]:
+        now = now or time.monotonic()
+        gone = [n for n, e in self.executors.items() if now - e.last_seen > self.timeout_s]
+        for n in gone:
+            del self.executors[n]
+        if gone:
+            self._rebuild()
+        return gone
+
+    def _rebuild(self) -> None:
+        models: dict[str, ModelInfo] = {}
+        routes: dict[str, list[str]] = {}
+        for cfg_ex in self.cfg.executors:  # config order keeps round-robin order stable
+            ex = self.executors.get(cfg_ex.name)
+            if ex is None:
+                continue
+            for model, info in ex.models.items():
+                models.setdefault(model, info)
+                routes.setdefault(model, []).append(ex.name)
+        for name, ex in self.executors.items():  # executors not in the config (scaled out by hand)
+            if all(e.name != name for e in self.cfg.executors):
+                for model, info in ex.models.items():
+                    models.setdefault(model, info)
+                    routes.setdefault(model, []).append(name)
+        if models == self.table.models and routes == self.table.routes:
+            return
+        # A new placement is a new solve: robots keep their executor only until then.
+        placement: dict[str, list[str]] = {}
+        for model, execs in routes.items():
+            for e in execs:
+                placement.setdefault(e, []).append(model)
+        self.quotas = assign(self.cfg, placement)
+        self.table = RoutingTable(version=self.table.version + 1, models=models, routes=routes,
+                                  quotas=self.quotas.robots, limits=self.quotas.limits)
+
+    def status(self, now: float | None = None) -> dict:
+        now = now or time.monotonic()
+        expected = [e.name for e in self.cfg.executors]
+        return {
+            "executors": {n: {"device": e.device, "models": sorted(e.models), "depths": e.depths,
+                              "last_seen_s": round(now - e.last_seen, 3)} for n, e in self.executors.items()},
+            "expected": expected,
+            "table": self.table.to_wire(),
+            "router": {"version": self.router_version,
+                       "last_seen_s": round(now - self.router_seen, 3) if self.router_seen else None},
+            "ready": (all(n in self.executors for n in expected) and self.router_version == self.table.version
+                      and self.router_seen > 0 and now - self.router_seen < 2.0),
+        }

@@ -1,0 +1,55 @@
+"""The traffic controller: from populations, robot limits and live placement to per-executor robot quotas."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from services.controlplane.solver import ModelDemand, PlanInputError, PlanProblem, PlanResult, solve
+from shared.config import ClusterConfig
+
+log = logging.getLogger("robion.control")
+
+
+@dataclass
+class Quotas:
+    """Robots of each model per executor; empty when the config declares no populations."""
+
+    robots: dict[str, dict[str, int]]  # model -> executor -> robots
+    limits: dict[str, int]  # model -> C_i
+    result: PlanResult | None = None
+
+
+def assign(cfg: ClusterConfig, placement: dict[str, list[str]]) -> Quotas:
+    """Solve the robot-to-GPU assignment over the executors alive now (``placement``: executor -> models).
+
+    When the integer program is infeasible the even split is used instead, so every robot
+    still has a GPU, and the diagnosis is logged for the operator.
+    """
+    demands = {m.name: m for m in cfg.models if m.robots > 0}
+    if cfg.control.strategy == "none" or not demands:
+        return Quotas({}, {})
+    missing = [m.name for m in demands.values() if m.limit is None]
+    if missing:
+        log.warning("no robot limit for %s: robots are spread round-robin per request", missing)
+        return Quotas({}, {})
+    executors = list(placement)
+    hosts: dict[str, list[int]] = {}
+    for j, name in enumerate(executors):
+        for model in placement[name]:
+            hosts.setdefault(model, []).append(j)
+    try:
+        problem = PlanProblem(len(executors), tuple(
+            ModelDemand(m.name, m.limit, m.robots, tuple(hosts.get(m.name, ()))) for m in demands.values()))
+    except PlanInputError as exc:
+        log.error("cannot plan the traffic: %s", exc)
+        return Quotas({}, {})
+    result = solve(problem, cfg.control.strategy, time_limit_s=cfg.control.solve_time_limit_s)
+    if not result.assignment:
+        log.error("traffic assignment is infeasible: %s; splitting robots evenly instead", result.diagnosis)
+        result = solve(problem, "eps")
+    elif not result.feasible:
+        log.warning("traffic assignment exceeds GPU limits: %s", result.diagnosis)
+    robots = {m: {executors[j]: n for j, n in per_gpu.items() if n} for m, per_gpu in result.assignment.items()}
+    log.info("traffic assignment (%s, objective %s): %s", result.strategy, result.objective, robots)
+    return Quotas(robots, {m.name: m.limit for m in demands.values()}, result)

@@ -1,0 +1,236 @@
+"""The executor's I/O thread: requests in from the router, replies out, control-plane heartbeats.
+
+Decoding, validation and tokenisation happen here, off the engine thread, so the engine
+only ever sees well-formed requests. Results come back from the engine thread through a
+queue plus an inproc wake-up socket (ZeroMQ sockets are not thread-safe).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import zmq
+
+from services.executor.engine import Engine
+from services.executor.scheduler import Request, Result
+from shared import control
+from shared.config import ClusterConfig, dial_address
+from shared.metrics import ExecutorMetrics
+from shared.models.base import ModelIO
+from shared.protocol import (ErrorCode, InferReply, InferRequest, ModelInfo, ProtocolError, Timings, decode, encode,
+                             error_frames, header_id, message_bytes, unpack_header)
+
+log = logging.getLogger("robion.executor")
+
+Tokenize = Callable[[str], np.ndarray]
+
+
+@dataclass
+class ServedInput:
+    """What the I/O thread needs to validate and prepare a model's requests."""
+
+    io: ModelIO
+    slo_s: float
+    tokenize: Tokenize
+    info: ModelInfo
+
+
+def to_request(msg: InferRequest, served: ServedInput, envelope: bytes, arrival: float) -> Request:
+    """Check a decoded request against the model's declared inputs and build the engine's Request."""
+    io = served.io
+    cams = set(msg.images)
+    if cams != set(io.cameras):
+        raise ProtocolError(ErrorCode.SHAPE_MISMATCH,
+                            f"obs.images: {msg.model} takes cameras {list(io.cameras)}, got {sorted(cams)}")
+    for cam in io.cameras:
+        img = msg.images[cam]
+        if img.dtype != np.uint8 or tuple(img.shape) != tuple(io.image_shape):
+            raise ProtocolError(ErrorCode.SHAPE_MISMATCH,
+                                f"obs.images.{cam}: expected uint8 {list(io.image_shape)}, got {img.dtype} {list(img.shape)}")
+    if msg.state.dtype != np.float32 or msg.state.shape != (io.state_dim,):
+        raise ProtocolError(ErrorCode.SHAPE_MISMATCH,
+                            f"obs.state: expected float32 [{io.state_dim}], got {msg.state.dtype} {list(msg.state.shape)}")
+    if not np.isfinite(msg.state).all():
+        raise ProtocolError(ErrorCode.BAD_REQUEST, "obs.state: contains NaN or infinity")
+    if len(msg.instruction) > 4096:
+        raise ProtocolError(ErrorCode.BAD_REQUEST, "obs.instruction: longer than 4096 characters")
+    images = np.stack([msg.images[c] for c in io.cameras])  # copies out of the frames, in camera order
+    return Request(id=msg.id, robot=msg.robot, model=msg.model, images=images, state=msg.state.copy(),
+                   tokens=served.tokenize(msg.instruction), arrival=arrival, deadline=arrival + served.slo_s,
+                   envelope=envelope)
+
+
+def reply_frames(res: Result, now: float) -> list:
+    r = res.request
+    if res.error is not None:
+        code, message = res.error
+        return error_frames(r.id, code, message)
+    timings = Timings(queue_ms=max(0.0, res.admitted - r.arrival) * 1e3, vlm_ms=res.vlm_s * 1e3,
+                      action_ms=res.action_s * 1e3, server_ms=(now - r.arrival) * 1e3)
+    return encode(InferReply(id=r.id, model=r.model, actions=res.actions, timings=timings))
+
+
+class ExecutorIO:
+    def __init__(self, name: str, cfg: ClusterConfig, device: str, served: dict[str, ServedInput], engine: Engine,
+                 metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None):
+        self.name = name
+        self.cfg = cfg
+        self.device = device
+        self.served = served
+        self.engine = engine
+        self.ctx = context or zmq.Context.instance()
+        self.results: queue.SimpleQueue[list[Result]] = queue.SimpleQueue()
+        self.stats = {"requests": 0, "replies": 0, "errors": 0}
+        self.metrics = metrics or ExecutorMetrics(name, device, {n: s.slo_s for n, s in served.items()})
+
+        self.backend = self.ctx.socket(zmq.DEALER)
+        self.backend.setsockopt(zmq.IDENTITY, name.encode())
+        self.backend.setsockopt(zmq.LINGER, 1000)
+        self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * cfg.router.max_message_bytes + 65536)
+        self.backend.connect(dial_address(cfg.router.backend, cfg.router.backend_connect))
+
+        self.ctl = self.ctx.socket(zmq.DEALER)
+        self.ctl.setsockopt(zmq.LINGER, 0)
+        self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
+
+        addr = f"inproc://executor-wake-{id(self)}"
+        self.wake_rx = self.ctx.socket(zmq.PAIR)
+        self.wake_rx.bind(addr)
+        self.wake_tx = self.ctx.socket(zmq.PAIR)
+        self.wake_tx.connect(addr)
+        self._wake_lock = threading.Lock()
+
+    def on_results(self, results: list[Result]) -> None:
+        """Called on the engine thread: hand results over and wake the I/O thread."""
+        self.results.put(results)
+        with self._wake_lock:
+            self.wake_tx.send(b"", zmq.NOBLOCK)
+
+    def register(self) -> None:
+        self.ctl.send(control.pack("register", executor=self.name, device=self.device,
+                                   models={n: s.info.to_wire() for n, s in self.served.items()}))
+        # Say hello to the router so its ROUTER socket knows our identity before the first request.
+        self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name)])
+
+    def run(self, stop: threading.Event) -> None:
+        poller = zmq.Poller()
+        for s in (self.backend, self.ctl, self.wake_rx):
+            poller.register(s, zmq.POLLIN)
+        self.register()
+        last_beat = time.monotonic()
+        while not stop.is_set():
+            ready = dict(poller.poll(50))
+            if self.wake_rx in ready:
+                while True:
+                    try:
+                        self.wake_rx.recv(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+            self._send_results()
+            if self.backend in ready:
+                for _ in range(256):
+                    try:
+                        frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
+                    except zmq.Again:
+                        break
+                    self._on_request(frames)
+            if self.ctl in ready:
+                while True:
+                    try:
+                        msg = control.unpack(self.ctl.recv(zmq.NOBLOCK))
+                    except zmq.Again:
+                        break
+                    except ProtocolError:
+                        continue
+                    if msg.get("kind") == "reregister":
+                        self.register()
+            now = time.monotonic()
+            if now - last_beat >= self.cfg.control.heartbeat_s:
+                last_beat = now
+                depths = self.engine.queues.depths()
+                self.ctl.send(control.pack("heartbeat", executor=self.name, depths=depths))
+                self._update_gauges(depths)
+
+    def drain(self, timeout_s: float = 5.0) -> None:
+        """After the engine stopped: send every remaining result so no request goes unanswered."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if not self._send_results():
+                break
+
+    def close(self) -> None:
+        # Leave the routing table now rather than after missed heartbeats.
+        self.ctl.send(control.pack("deregister", executor=self.name))
+        self.ctl.setsockopt(zmq.LINGER, 500)
+        for s in (self.backend, self.ctl, self.wake_rx, self.wake_tx):
+            s.close()
+
+    def _update_gauges(self, depths: dict[str, int]) -> None:
+        for model, depth in depths.items():
+            self.metrics.queue_depth.labels(model).set(depth)
+        if self.device.startswith("cuda"):
+            import torch
+
+            self.metrics.gpu_memory.labels(self.device).set(torch.cuda.memory_reserved(torch.device(self.device)))
+
+    def _send_results(self) -> bool:
+        sent = False
+        while True:
+            try:
+                batch = self.results.get_nowait()
+            except queue.Empty:
+                return sent
+            now = time.monotonic()
+            batches: dict[tuple[str, float], int] = {}
+            for res in batch:
+                r = res.request
+                self.backend.send_multipart([r.envelope, *reply_frames(res, now)], copy=False)
+                sent = True
+                if res.error is not None:
+                    self.stats["errors"] += 1
+                    self.metrics.observe_result(r.model, res.error[0].value.lower(), now - r.arrival, 0, 0, 0)
+                    continue
+                self.stats["replies"] += 1
+                self.metrics.observe_result(r.model, "ok", now - r.arrival, res.admitted - r.arrival, res.vlm_s,
+                                            res.action_s)
+                key = (r.model, res.admitted)  # members of one batch share their admission time
+                batches[key] = batches.get(key, 0) + 1
+            for (model, _), size in batches.items():
+                self.metrics.observe_batch(model, size)
+
+    def _on_request(self, frames: list[zmq.Frame]) -> None:
+        arrival = time.monotonic()
+        if len(frames) < 2:
+            return
+        envelope = frames[0].bytes
+        body = [f.buffer for f in frames[1:]]
+        rid = ""
+        header: dict = {}
+        try:
+            header = unpack_header(body[0])
+            rid = header_id(header)
+            if message_bytes(body) > self.cfg.router.max_message_bytes:
+                raise ProtocolError(ErrorCode.TOO_LARGE, f"message beyond {self.cfg.router.max_message_bytes} bytes")
+            msg = decode(body, header)
+            if not isinstance(msg, InferRequest):
+                raise ProtocolError(ErrorCode.BAD_REQUEST, "executors take only infer requests")
+            served = self.served.get(msg.model)
+            if served is None:
+                raise ProtocolError(ErrorCode.UNKNOWN_MODEL, f"model {msg.model!r} is not served by {self.name}")
+            self.stats["requests"] += 1
+            self.engine.submit(to_request(msg, served, envelope, arrival))
+        except ProtocolError as exc:
+            self.stats["errors"] += 1
+            model = header.get("model") if rid and isinstance(header.get("model"), str) else ""
+            self.metrics.requests.labels(model if model in self.served else "", exc.code.value.lower()).inc()
+            self.backend.send_multipart([envelope, *error_frames(rid, exc.code, exc.message)], copy=False)
+        except Exception as exc:  # never let one request take the executor down
+            log.exception("failed to accept request %r", rid)
+            self.stats["errors"] += 1
+            self.backend.send_multipart([envelope, *error_frames(rid, ErrorCode.INTERNAL, type(exc).__name__)], copy=False)

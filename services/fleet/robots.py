@@ -1,0 +1,122 @@
+"""Simulated robots over real sockets: each sends a request every 1/f s on its own clock."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import zmq
+
+from shared.client import Completion, RobotClient, wait_any
+from shared.netmodel import NETWORKS
+
+log = logging.getLogger("robion.fleet")
+
+INSTRUCTIONS = ["pick up the red block", "open the drawer", "put the bowl on the plate", "stack the cups"]
+
+
+@dataclass
+class ModelReport:
+    model: str
+    robots: int
+    sent: int = 0
+    replies: int = 0
+    errors: dict[str, int] = field(default_factory=dict)
+    slo_ms: float = 0.0
+    slo_attainment: float = 0.0  # share of sent requests answered within the deadline, end to end
+    p50_ms: float = 0.0
+    p99_ms: float = 0.0
+    server_p50_ms: float = 0.0
+
+
+@dataclass
+class FleetReport:
+    network: str
+    robots: int
+    hz: float
+    duration_s: float
+    models: dict[str, ModelReport]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def table(self) -> str:
+        rows = [f"{'model':<16}{'robots':>7}{'sent':>7}{'ok':>7}{'errors':>8}{'SLO ms':>8}{'SLO-AT':>9}{'p50 ms':>9}{'p99 ms':>9}"]
+        for r in self.models.values():
+            rows.append(f"{r.model:<16}{r.robots:>7}{r.sent:>7}{r.replies:>7}{sum(r.errors.values()):>8}{r.slo_ms:>8.0f}"
+                        f"{100 * r.slo_attainment:>8.1f}%{r.p50_ms:>9.1f}{r.p99_ms:>9.1f}")
+        return "\n".join(rows)
+
+
+def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int = 0, network: str = "wifi7",
+              models: list[str] | None = None, drain_s: float = 5.0) -> FleetReport:
+    """Drive ``robots`` simulated robots at ``hz`` for ``duration_s``; robots are spread over ``models`` round-robin."""
+    rng = np.random.default_rng(seed)
+    net = NETWORKS[network]
+    ctx = zmq.Context.instance()
+    probe = RobotClient(address, robot_id=f"fleet-probe-{seed}", context=ctx)
+    meta = probe.metadata()
+    probe.close()
+    models = models or sorted(meta)
+    missing = [m for m in models if m not in meta]
+    if missing:
+        raise ValueError(f"models not served: {missing}")
+
+    clients: list[RobotClient] = []
+    obs = []
+    for i in range(robots):
+        model = models[i % len(models)]
+        info = meta[model]
+        clients.append(RobotClient(address, robot_id=f"robot-{seed}-{i:03d}", context=ctx))
+        images = {cam: rng.integers(0, 256, info.image_shape, dtype=np.uint8) for cam in info.cameras}
+        state = rng.standard_normal(info.state_dim).astype(np.float32)
+        obs.append((model, images, state, INSTRUCTIONS[i % len(INSTRUCTIONS)]))
+
+    period = 1.0 / hz
+    start = time.monotonic() + 0.05
+    next_send = [start + rng.uniform(0, period) for _ in range(robots)]
+    end = start + duration_s
+    sent: dict[str, list[str]] = {m: [] for m in models}
+    done: dict[str, Completion] = {}
+    while True:
+        now = time.monotonic()
+        for i, c in enumerate(clients):
+            while next_send[i] <= now and next_send[i] < end:
+                model, images, state, text = obs[i]
+                sent[model].append(c.submit(model, images, state, text))
+                next_send[i] += period  # on the robot's clock, whether or not a reply came
+        upcoming = min((t for t in next_send if t < end), default=None)
+        if upcoming is None:
+            if all(c.pending() == 0 for c in clients) or now > end + drain_s:
+                break
+            wait = 0.05
+        else:
+            wait = max(0.0, upcoming - time.monotonic())
+        for _, comp in wait_any(clients, wait):
+            done[comp.request_id] = comp
+    for c in clients:
+        c.close()
+
+    reports = {}
+    for model in models:
+        info = meta[model]
+        ids = sent[model]
+        comps = [done[i] for i in ids if i in done]
+        ok = [c for c in comps if c.ok]
+        e2e = np.array([(c.latency_s + net.latency_s(c.request_bytes, c.reply_bytes)) * 1e3 for c in ok])
+        server = np.array([c.timings.server_ms for c in ok])
+        met = int((e2e <= info.deadline_ms).sum()) if len(e2e) else 0
+        errors = Counter(c.error.code.value for c in comps if c.error is not None)
+        unanswered = len(ids) - len(comps)
+        if unanswered:
+            errors["NO_REPLY"] = unanswered
+        reports[model] = ModelReport(
+            model=model, robots=sum(1 for o in obs if o[0] == model), sent=len(ids), replies=len(ok),
+            errors=dict(errors), slo_ms=info.deadline_ms, slo_attainment=met / len(ids) if ids else 0.0,
+            p50_ms=float(np.percentile(e2e, 50)) if len(e2e) else float("nan"),
+            p99_ms=float(np.percentile(e2e, 99)) if len(e2e) else float("nan"),
+            server_p50_ms=float(np.percentile(server, 50)) if len(server) else float("nan"))
+    return FleetReport(network=network, robots=robots, hz=hz, duration_s=duration_s, models=reports)

@@ -1,0 +1,76 @@
+"""Picking the executor for a request from the control plane's routing table.
+
+With a traffic assignment in the table, each robot is pinned to one executor for its model
+so that the robots per (model, executor) follow the solver's quotas; a robot beyond the
+declared population goes to the least-loaded executor hosting its model. Without one,
+requests are spread round-robin.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from shared.control import RoutingTable
+
+MAX_PINNED_ROBOTS = 100_000
+
+
+class Routing:
+    def __init__(self) -> None:
+        self.table = RoutingTable()
+        self._next: dict[str, int] = {}
+        self.pins: dict[tuple[bytes, str], str] = {}  # (robot, model) -> executor
+        self.assigned: Counter[tuple[str, str]] = Counter()  # (model, executor) -> pinned robots
+
+    def update(self, table: RoutingTable) -> set[str]:
+        """Swap in a newer table in one assignment; returns executors that left it.
+
+        Pins that still fit the new routes and quotas are kept, so a re-solve moves only the
+        robots it has to.
+        """
+        before = {e for ex in self.table.routes.values() for e in ex}
+        self.table = table
+        after = {e for ex in table.routes.values() for e in ex}
+        pins: dict[tuple[bytes, str], str] = {}
+        counts: Counter[tuple[str, str]] = Counter()
+        for (robot, model), ex in self.pins.items():
+            quota = table.quotas.get(model)
+            if quota and ex in table.routes.get(model, []) and counts[(model, ex)] < quota.get(ex, 0):
+                pins[(robot, model)] = ex
+                counts[(model, ex)] += 1
+        self.pins, self.assigned = pins, counts
+        return before - after
+
+    def candidates(self, model: str, robot: bytes = b"") -> list[str]:
+        """Executors to try for ``model``, the chosen one first; empty when none hosts it."""
+        execs = self.table.routes.get(model, [])
+        if not execs:
+            return []
+        if not self.table.quotas.get(model):
+            i = self._next.get(model, 0) % len(execs)
+            self._next[model] = i + 1
+            return execs[i:] + execs[:i]
+        chosen = self.pins.get((robot, model))
+        if chosen not in execs:
+            chosen = self._pin(model, robot, execs)
+        return [chosen] + [e for e in execs if e != chosen]
+
+    def _pin(self, model: str, robot: bytes, execs: list[str]) -> str:
+        quota = self.table.quotas[model]
+        room = {e: quota.get(e, 0) - self.assigned[(model, e)] for e in execs}
+        best = max(execs, key=lambda e: room[e])
+        if room[best] <= 0:  # beyond the declared population: least-loaded GPU by its share of capacity
+            best = min(execs, key=self._load)
+        if len(self.pins) >= MAX_PINNED_ROBOTS:
+            self.pins.clear()
+            self.assigned.clear()
+        self.pins[(robot, model)] = best
+        self.assigned[(model, best)] += 1
+        return best
+
+    def _load(self, executor: str) -> float:
+        limits = self.table.limits
+        return sum(n / limits.get(m, 1) for (m, e), n in self.assigned.items() if e == executor)
+
+    def knows(self, model: str) -> bool:
+        return model in self.table.models

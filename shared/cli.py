@@ -1,0 +1,166 @@
+"""The `robion` command."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from shared.config import ConfigError, dial_address, load_config
+
+DEFAULT_DEMO = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
+
+
+def _load(path: str):
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        print(f"config error: {exc}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def _wait_for_signal() -> None:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.5):
+        pass
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from shared.cluster import LocalCluster
+
+    cfg = _load(args.config)
+    cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
+    # Ctrl-C during start-up must still stop what was started.
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
+    try:
+        t0 = time.monotonic()
+        status = cluster.start(timeout_s=args.timeout)
+        print(f"robion is up in {time.monotonic() - t0:.1f} s: robots connect to {dial_address(cfg.router.bind)}; "
+              f"models {sorted(status['table']['models'])} on executors {sorted(status['executors'])}. Ctrl-C stops it.",
+              flush=True)
+        _wait_for_signal()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        codes = cluster.stop()
+        print(f"robion stopped: {codes}", flush=True)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from shared.cluster import LocalCluster
+
+    cfg = _load(args.config)
+    cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
+    print(f"starting the cluster from {args.config} ...", flush=True)
+    t0 = time.monotonic()
+    try:
+        cluster.start(timeout_s=args.timeout)
+        print(f"cluster ready in {time.monotonic() - t0:.1f} s; driving {cfg.fleet.robots} simulated robots at "
+              f"{cfg.fleet.hz:g} Hz for {cfg.fleet.duration_s:g} s ...", flush=True)
+        cmd = [sys.executable, "-m", "services.fleet.main", "--config", args.config, "--parent-pid", str(os.getpid())]
+        if args.json:
+            cmd += ["--json", args.json]
+        rc = subprocess.call(cmd)
+    finally:
+        cluster.stop()
+    return rc
+
+
+def cmd_models(args: argparse.Namespace) -> int:
+    from shared.models.cli import main as models_main
+
+    return models_main(["--json"] if args.json else [])
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    from services.controlplane.planning import main as plan_main
+
+    return plan_main(args.rest)
+
+
+BENCHMARKS = {"capacity": "capacity.py", "router-hop": "router_hop.py", "solver": "solver_speed.py",
+              "models": "model_latency.py", "engine-gap": "engine_gap.py"}
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    import runpy
+
+    script = Path(__file__).resolve().parent.parent / "bench" / BENCHMARKS[args.name]
+    if not script.exists():
+        print(f"benchmark script {script} is missing (run from a source checkout)", file=sys.stderr)
+        return 2
+    sys.argv = [str(script), *args.rest]
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    except SystemExit as exc:
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 1
+    return 0
+
+
+def cmd_ctl(args: argparse.Namespace) -> int:
+    from shared.cluster import control_status
+
+    cfg = _load(args.config)
+    if args.action == "status":
+        status = control_status(dial_address(cfg.control.bind, cfg.control.connect), timeout_s=2.0)
+        if status is None:
+            print(f"control plane at {cfg.control.bind} does not answer", file=sys.stderr)
+            return 1
+        print(json.dumps(status, indent=2))
+        return 0
+    print(f"unknown ctl action {args.action!r}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="robion", description="Serve VLA models to fleets of robots.")
+    p.add_argument("--log-level", default=os.environ.get("ROBION_LOG_LEVEL", "WARNING"))
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    up = sub.add_parser("up", help="start router, control plane and executors as local processes")
+    up.add_argument("-c", "--config", required=True)
+    up.add_argument("--timeout", type=float, default=300.0, help="seconds to wait for the cluster to be ready")
+    up.set_defaults(fn=cmd_up)
+
+    demo = sub.add_parser("demo", help="start a cluster, drive a simulated fleet against it, print the SLO report")
+    demo.add_argument("-c", "--config", default=str(DEFAULT_DEMO))
+    demo.add_argument("--timeout", type=float, default=300.0)
+    demo.add_argument("--json", metavar="FILE", help="also write the fleet report as JSON")
+    demo.set_defaults(fn=cmd_demo)
+
+    models = sub.add_parser("models", help="list the registered VLA architectures")
+    models.add_argument("--json", action="store_true")
+    models.set_defaults(fn=cmd_models)
+
+    plan = sub.add_parser("plan", help="solve robot-to-GPU assignment without starting anything", add_help=False)
+    plan.add_argument("rest", nargs=argparse.REMAINDER)
+    plan.set_defaults(fn=cmd_plan)
+
+    bench = sub.add_parser("bench", help="run a benchmark from bench/ (capacity, router-hop, solver, models, engine-gap)",
+                           add_help=False)
+    bench.add_argument("name", choices=sorted(BENCHMARKS))
+    bench.add_argument("rest", nargs=argparse.REMAINDER)
+    bench.set_defaults(fn=cmd_bench)
+
+    ctl = sub.add_parser("ctl", help="talk to a running cluster's control plane")
+    ctl.add_argument("action", choices=["status"])
+    ctl.add_argument("-c", "--config", required=True)
+    ctl.set_defaults(fn=cmd_ctl)
+
+    args = p.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s robion %(levelname)s %(message)s")
+    return args.fn(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

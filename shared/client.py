@@ -1,0 +1,216 @@
+"""Robot SDK: talk to a Robion router over a ZeroMQ DEALER socket.
+
+    client = RobotClient("tcp://server:5555", robot_id="arm-07")
+    info = client.metadata()["pi0-libero"]
+    actions = client.infer("pi0-libero", {"cam0": img0, "cam1": img1}, state, "pick up the cup").actions
+
+``infer`` blocks; ``submit`` + ``poll`` (or ``wait_any`` over many clients) let one process
+drive many robots without threads.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+import zmq
+
+from shared.protocol import (ErrorCode, ErrorReply, Hello, InferReply, InferRequest, Metadata, ModelInfo, Ping, Pong,
+                             ProtocolError, Timings, decode, encode, message_bytes)
+
+
+class RobionError(Exception):
+    """The server answered with an error reply; ``code`` is one of shared.protocol.ErrorCode."""
+
+    def __init__(self, code: ErrorCode, message: str, request_id: str = ""):
+        super().__init__(f"{code.value}: {message}")
+        self.code = code
+        self.message = message
+        self.request_id = request_id
+
+
+class RequestTimeout(RobionError, TimeoutError):
+    """No reply arrived in time."""
+
+    def __init__(self, request_id: str, timeout_s: float):
+        super().__init__(ErrorCode.UNAVAILABLE, f"no reply within {timeout_s:.3f} s", request_id)
+
+
+@dataclass
+class Completion:
+    """The outcome of one submitted request."""
+
+    request_id: str
+    model: str
+    sent_at: float  # time.monotonic() at send
+    received_at: float
+    actions: np.ndarray | None = None
+    timings: Timings = field(default_factory=Timings)
+    error: RobionError | None = None
+    request_bytes: int = 0
+    reply_bytes: int = 0
+
+    @property
+    def latency_s(self) -> float:
+        return self.received_at - self.sent_at
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+class RobotClient:
+    """One robot's connection. Not thread-safe (one ZeroMQ socket); use one client per thread."""
+
+    def __init__(self, address: str, robot_id: str | None = None, timeout_s: float = 10.0,
+                 context: zmq.Context | None = None):
+        self.robot_id = robot_id or f"robot-{uuid.uuid4().hex[:8]}"
+        self.timeout_s = timeout_s
+        self._ctx = context or zmq.Context.instance()
+        self.socket = self._ctx.socket(zmq.DEALER)
+        self.socket.setsockopt(zmq.LINGER, 0)
+        self.socket.setsockopt(zmq.IDENTITY, self.robot_id.encode())
+        self.socket.connect(address)
+        self._ids = itertools.count()
+        self._pending: dict[str, tuple[str, float, int]] = {}  # id -> (model, sent_at, bytes)
+        self._done: dict[str, Completion] = {}
+        self._metadata: dict[str, ModelInfo] | None = None
+
+    # -- non-blocking API
+
+    def submit(self, model: str, images: Mapping[str, np.ndarray] | Sequence[np.ndarray], state: np.ndarray,
+               instruction: str = "", request_id: str | None = None) -> str:
+        """Send a request and return its id at once; collect the outcome with ``poll``."""
+        if not isinstance(images, Mapping):
+            cams = self._camera_names(model, len(images))
+            images = dict(zip(cams, images))
+        rid = request_id or f"{self.robot_id}-{next(self._ids)}"
+        frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
+                                     state=np.asarray(state, dtype=np.float32), instruction=instruction))
+        self._pending[rid] = (model, time.monotonic(), message_bytes(frames))
+        self.socket.send_multipart(frames, copy=False)
+        return rid
+
+    def poll(self, timeout_s: float = 0.0) -> list[Completion]:
+        """Completions that arrived within ``timeout_s`` (0: only those already here)."""
+        out: list[Completion] = []
+        deadline = time.monotonic() + timeout_s
+        while True:
+            wait_ms = max(0, int((deadline - time.monotonic()) * 1000)) if not out else 0
+            if not self.socket.poll(wait_ms):
+                return out
+            done = self._receive_one()
+            if done is not None:
+                out.append(done)
+
+    def pending(self) -> int:
+        return len(self._pending)
+
+    # -- blocking API
+
+    def infer(self, model: str, images: Mapping[str, np.ndarray] | Sequence[np.ndarray], state: np.ndarray,
+              instruction: str = "", timeout_s: float | None = None) -> Completion:
+        """Send one request and wait for its action chunk; raises RobionError / RequestTimeout."""
+        rid = self.submit(model, images, state, instruction)
+        done = self._wait_for(rid, timeout_s)
+        if done.error is not None:
+            raise done.error
+        return done
+
+    def metadata(self, refresh: bool = False) -> dict[str, ModelInfo]:
+        """The served models: their camera names, image shape, state size, output shape and deadline."""
+        if self._metadata is None or refresh:
+            rid = f"{self.robot_id}-hello-{next(self._ids)}"
+            self._pending[rid] = ("", time.monotonic(), 0)
+            self.socket.send_multipart(encode(Hello(id=rid)))
+            done = self._wait_for(rid, None)
+            if done.error is not None:
+                raise done.error
+        assert self._metadata is not None
+        return self._metadata
+
+    def ping(self, timeout_s: float | None = None) -> float:
+        """Round-trip time to the router in seconds."""
+        rid = f"{self.robot_id}-ping-{next(self._ids)}"
+        self._pending[rid] = ("", time.monotonic(), 0)
+        self.socket.send_multipart(encode(Ping(id=rid)))
+        done = self._wait_for(rid, timeout_s)
+        if done.error is not None:
+            raise done.error
+        return done.latency_s
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+
+    def __enter__(self) -> "RobotClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- internals
+
+    def _camera_names(self, model: str, n: int) -> list[str]:
+        info = self.metadata().get(model)
+        if info is None:
+            raise RobionError(ErrorCode.UNKNOWN_MODEL, f"model {model!r} is not served")
+        if len(info.cameras) != n:
+            raise RobionError(ErrorCode.SHAPE_MISMATCH, f"{model} takes {len(info.cameras)} cameras, got {n}")
+        return info.cameras
+
+    def _wait_for(self, rid: str, timeout_s: float | None) -> Completion:
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
+        while rid not in self._done:
+            left = deadline - time.monotonic()
+            if left <= 0 or not self.socket.poll(int(left * 1000) + 1):
+                if rid in self._done:
+                    break
+                self._pending.pop(rid, None)
+                raise RequestTimeout(rid, timeout_s)
+            done = self._receive_one()
+            if done is not None:
+                self._done[done.request_id] = done
+        return self._done.pop(rid)
+
+    def _receive_one(self) -> Completion | None:
+        frames = self.socket.recv_multipart(copy=False)
+        now = time.monotonic()
+        size = sum(len(f.buffer) for f in frames)
+        try:
+            msg = decode([f.buffer for f in frames])
+        except ProtocolError:
+            return None  # not ours to fail on; a garbled reply is dropped and its request times out
+        rid = getattr(msg, "id", "")
+        model, sent_at, req_bytes = self._pending.pop(rid, ("", now, 0))
+        done = Completion(request_id=rid, model=model, sent_at=sent_at, received_at=now, request_bytes=req_bytes,
+                          reply_bytes=size)
+        if isinstance(msg, InferReply):
+            done.actions = np.array(msg.actions)  # own the memory: the frame is released after this
+            done.timings = msg.timings
+        elif isinstance(msg, ErrorReply):
+            done.error = RobionError(msg.code, msg.message, rid)
+        elif isinstance(msg, Metadata):
+            self._metadata = msg.models
+        elif not isinstance(msg, Pong):
+            return None
+        return done
+
+
+def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[RobotClient, Completion]]:
+    """Wait until any client has a completion (or the timeout passes) and collect all that arrived."""
+    clients = list(clients)
+    poller = zmq.Poller()
+    by_socket = {}
+    for c in clients:
+        poller.register(c.socket, zmq.POLLIN)
+        by_socket[c.socket] = c
+    out: list[tuple[RobotClient, Completion]] = []
+    for sock, _ in poller.poll(max(0, int(timeout_s * 1000))):
+        client = by_socket[sock]
+        out.extend((client, c) for c in client.poll(0))
+    return out

@@ -1,0 +1,99 @@
+"""Starting a whole Robion cluster as local processes, waiting for it, and stopping it cleanly."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import zmq
+
+from shared import control
+from shared.config import ClusterConfig, dial_address
+
+log = logging.getLogger("robion.cluster")
+
+
+def control_status(address: str, timeout_s: float = 1.0, context: zmq.Context | None = None) -> dict | None:
+    """Ask the control plane for its status; None when it does not answer in time."""
+    ctx = context or zmq.Context.instance()
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    try:
+        sock.connect(address)
+        sock.send(control.pack("status"))
+        if not sock.poll(int(timeout_s * 1000)):
+            return None
+        return control.unpack(sock.recv()).get("status")
+    finally:
+        sock.close()
+
+
+class LocalCluster:
+    """Control plane, router and one process per executor, all children of this process."""
+
+    def __init__(self, cfg: ClusterConfig, config_path: str | Path, log_level: str = "INFO"):
+        self.cfg = cfg
+        self.config_path = str(config_path)
+        self.log_level = log_level
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def _spawn(self, name: str, module: str, *extra: str) -> None:
+        cmd = [sys.executable, "-m", module, "--config", self.config_path, "--log-level", self.log_level,
+               "--parent-pid", str(os.getpid()), *extra]
+        self.procs[name] = subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
+
+    def start(self, timeout_s: float = 120.0) -> dict:
+        """Start every process and block until the control plane reports the cluster ready."""
+        self._spawn("control", "services.controlplane.main")
+        self._spawn("router", "services.router.main")
+        for ex in self.cfg.executors:
+            self._spawn(f"executor[{ex.name}]", "services.executor.main", "--name", ex.name)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for name, p in self.procs.items():
+                if p.poll() is not None:
+                    self.stop()
+                    raise RuntimeError(f"{name} exited with code {p.returncode} during start-up")
+            status = control_status(dial_address(self.cfg.control.bind, self.cfg.control.connect), timeout_s=0.5)
+            if status and status.get("ready"):
+                return status
+            time.sleep(0.1)
+        self.stop()
+        raise TimeoutError(f"cluster not ready within {timeout_s:.0f} s")
+
+    def alive(self) -> dict[str, bool]:
+        return {name: p.poll() is None for name, p in self.procs.items()}
+
+    def stop(self, grace_s: float = 10.0) -> dict[str, int]:
+        """Stop executors first (their last replies still pass the router), then router and control plane.
+
+        Each gets SIGTERM and ``grace_s`` to finish; stragglers are killed, so nothing outlives us.
+        """
+        codes: dict[str, int] = {}
+        executors = [n for n in self.procs if n.startswith("executor")]
+        for wave in (executors, ["router"], ["control"]):
+            procs = {n: self.procs[n] for n in wave if n in self.procs}
+            for p in procs.values():
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            end = time.monotonic() + grace_s
+            for name, p in procs.items():
+                try:
+                    codes[name] = p.wait(timeout=max(0.1, end - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    log.warning("%s did not stop in time: killing it", name)
+                    p.kill()
+                    codes[name] = p.wait()
+        return codes
+
+    def __enter__(self) -> "LocalCluster":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

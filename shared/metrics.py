@@ -1,0 +1,117 @@
+"""Prometheus metrics of each service, served on its own /metrics port.
+
+Names follow Prometheus conventions (robion_<thing>_<unit>, _total counters, _seconds
+histograms) and echo Triton's vocabulary where operators know it: inference count vs
+execution count, whose ratio is the mean batch size.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
+
+log = logging.getLogger("robion.metrics")
+
+LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.125, 0.156, 0.2, 0.3, 0.5, 1.0, 2.5)
+STAGE_BUCKETS = (0.0005, 0.001, 0.002, 0.004, 0.006, 0.008, 0.01, 0.015, 0.02, 0.03, 0.05, 0.1, 0.25)
+BATCH_BUCKETS = (1, 2, 4, 8, 16, 32)
+
+
+def serve(registry: CollectorRegistry, port: int, addr: str = "0.0.0.0") -> bool:
+    """Expose ``registry`` on http://addr:port/metrics; a port already taken is logged, not fatal."""
+    if port <= 0:
+        return False
+    try:
+        start_http_server(port, addr=addr, registry=registry)
+    except OSError as exc:
+        log.error("cannot serve metrics on port %d: %s", port, exc)
+        return False
+    return True
+
+
+class RouterMetrics:
+    def __init__(self) -> None:
+        r = self.registry = CollectorRegistry()
+        self.requests = Counter("robion_router_requests_total", "Requests answered by the router, by outcome",
+                                ["model", "status"], registry=r)
+        self.latency = Histogram("robion_router_request_duration_seconds",
+                                 "Time from forwarding a request to an executor until its reply", ["model"],
+                                 buckets=LATENCY_BUCKETS, registry=r)
+        self.in_flight = Gauge("robion_router_in_flight_requests", "Requests forwarded and not yet answered", registry=r)
+        self.table_version = Gauge("robion_router_routing_table_version", "Version of the routing table in use", registry=r)
+        self.executors = Gauge("robion_router_executors", "Executors in the routing table", registry=r)
+
+
+class ExecutorMetrics:
+    def __init__(self, executor: str, device: str, models: dict[str, float], window: int = 1000) -> None:
+        r = self.registry = CollectorRegistry()
+        self.executor = executor
+        self.gpu = device
+        self.slo_s = models
+        self.requests = Counter("robion_requests_total", "Requests answered by the executor, by outcome",
+                                ["model", "status"], registry=r)
+        self.latency = Histogram("robion_request_duration_seconds", "Server time from receipt to reply",
+                                 ["model"], buckets=LATENCY_BUCKETS, registry=r)
+        self.queue_wait = Histogram("robion_queue_wait_seconds", "Time a request waited before its batch started",
+                                    ["model"], buckets=LATENCY_BUCKETS, registry=r)
+        self.stage = Histogram("robion_stage_duration_seconds", "Duration of a stage as seen by its requests",
+                               ["model", "stage"], buckets=STAGE_BUCKETS, registry=r)
+        self.slo_met = Counter("robion_slo_met_total", "Replies sent within the model's deadline (server side)",
+                               ["model"], registry=r)
+        self.slo_missed = Counter("robion_slo_missed_total", "Requests answered late or with an error",
+                                  ["model"], registry=r)
+        self.slo_attainment = Gauge("robion_slo_attainment_ratio",
+                                    f"Share of the last {window} requests answered within the deadline (server side)",
+                                    ["model"], registry=r)
+        self.queue_depth = Gauge("robion_queue_depth", "Requests waiting in the model's queue", ["model"], registry=r)
+        self.inference_count = Counter("robion_inference_count_total", "Requests executed (batch members)",
+                                       ["model"], registry=r)
+        self.execution_count = Counter("robion_execution_count_total", "Batches executed; inference/execution = mean batch",
+                                       ["model"], registry=r)
+        self.batch_size = Histogram("robion_batch_size", "Batch size per stage execution", ["model", "stage"],
+                                    buckets=BATCH_BUCKETS, registry=r)
+        self.lockstep = Histogram("robion_lockstep_duration_seconds", "Duration of a lockstep", buckets=STAGE_BUCKETS,
+                                  registry=r)
+        self.lockstep_gap = Histogram("robion_lockstep_gap_seconds", "CPU gap between locksteps",
+                                      buckets=(1e-5, 2.5e-5, 5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 5e-3), registry=r)
+        self.sm_level = Gauge("robion_vlm_sm_level", "SMs the VLM stream was restricted to in the last lockstep "
+                              "(the device's SM count when unrestricted)", registry=r)
+        self.up = Gauge("robion_executor_up", "1 while the executor serves", ["executor"], registry=r)
+        self.gpu_memory = Gauge("robion_gpu_memory_used_bytes", "Device memory used by this executor", ["gpu"], registry=r)
+        self._recent: dict[str, deque[bool]] = {m: deque(maxlen=window) for m in models}
+        self.up.labels(executor).set(1)
+        for m in models:  # series exist from the start, so dashboards show zeros, not gaps
+            self.slo_attainment.labels(m).set(1.0)
+            self.queue_depth.labels(m).set(0)
+
+    def observe_result(self, model: str, status: str, server_s: float, queue_s: float, vlm_s: float,
+                       action_s: float) -> None:
+        self.requests.labels(model, status).inc()
+        met = status == "ok" and server_s <= self.slo_s.get(model, float("inf"))
+        (self.slo_met if met else self.slo_missed).labels(model).inc()
+        recent = self._recent.setdefault(model, deque(maxlen=1000))
+        recent.append(met)
+        self.slo_attainment.labels(model).set(sum(recent) / len(recent))
+        if status == "ok":
+            self.latency.labels(model).observe(server_s)
+            self.queue_wait.labels(model).observe(queue_s)
+            self.stage.labels(model, "vlm").observe(vlm_s)
+            self.stage.labels(model, "action").observe(action_s)
+
+    def observe_batch(self, model: str, size: int) -> None:
+        self.inference_count.labels(model).inc(size)
+        self.execution_count.labels(model).inc()
+        self.batch_size.labels(model, "vlm").observe(size)
+        self.batch_size.labels(model, "action").observe(size)
+
+
+class ControlMetrics:
+    def __init__(self) -> None:
+        r = self.registry = CollectorRegistry()
+        self.executors = Gauge("robion_executors_registered", "Executors registered and heartbeating", registry=r)
+        self.executor_up = Gauge("robion_executor_up", "1 while the executor heartbeats", ["executor"], registry=r)
+        self.table_version = Gauge("robion_routing_table_version", "Current routing table version", registry=r)
+        self.robots_assigned = Gauge("robion_robots_assigned", "Robots of a model assigned to a GPU (executor)",
+                                     ["model", "gpu"], registry=r)

@@ -1,0 +1,56 @@
+"""What every service process does the same way: arguments, logging, signals, orphan guard."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+
+from shared.config import ClusterConfig, ConfigError, load_config
+
+
+def service_args(name: str, argv: list[str] | None = None, extra=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog=f"robion-{name}")
+    p.add_argument("-c", "--config", required=True, help="cluster YAML config")
+    p.add_argument("--log-level", default=os.environ.get("ROBION_LOG_LEVEL", "INFO"))
+    p.add_argument("--parent-pid", type=int, default=0,
+                   help="exit when this process is gone (set by `robion up`, so no service outlives it)")
+    if extra:
+        extra(p)
+    return p.parse_args(argv)
+
+
+def setup_logging(name: str, level: str) -> None:
+    logging.basicConfig(level=level.upper(), stream=sys.stderr,
+                        format=f"%(asctime)s {name} %(levelname)s %(name)s: %(message)s")
+
+
+def load_or_exit(path: str) -> ClusterConfig:
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        print(f"config error: {exc}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def stop_event(parent_pid: int = 0) -> threading.Event:
+    """An event set by SIGINT/SIGTERM, or when the launching process disappears."""
+    stop = threading.Event()
+
+    def handler(signum, frame):
+        logging.getLogger("robion").info("signal %d: shutting down", signum)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+    if parent_pid:
+        def watch():
+            while not stop.wait(0.5):
+                if os.getppid() != parent_pid:
+                    logging.getLogger("robion").warning("launcher %d is gone: shutting down", parent_pid)
+                    stop.set()
+        threading.Thread(target=watch, daemon=True, name="parent-watch").start()
+    return stop

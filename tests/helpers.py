@@ -1,0 +1,42 @@
+"""Shared test fixtures: free loopback ports and small cluster configs."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import yaml
+
+
+def free_ports(n: int) -> list[int]:
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        socks.append(s)
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def cluster_config(tmp_path: Path, **overrides) -> tuple[Path, dict]:
+    rp, bp, cp = free_ports(3)
+    data = {
+        "models": [{"name": "toy-a", "arch": "toy", "size": "tiny", "seed": 0, "slo_ms": 500},
+                   {"name": "toy-b", "arch": "toy", "size": "tiny", "seed": 1, "slo_ms": 500}],
+        "executors": [{"name": "ex0", "device": "cpu", "models": ["toy-a", "toy-b"], "metrics_port": 0},
+                      {"name": "ex1", "device": "cpu", "models": ["toy-a"], "metrics_port": 0}],
+        "engine": {"kind": "monolithic", "max_batch": 2},
+        "router": {"bind": f"tcp://127.0.0.1:{rp}", "backend": f"tcp://127.0.0.1:{bp}",
+                   "max_message_bytes": 1_000_000, "metrics_port": 0},
+        "control": {"bind": f"tcp://127.0.0.1:{cp}", "heartbeat_s": 0.2, "missed_heartbeats": 5,
+                    "state_dir": str(tmp_path / "state"), "metrics_port": 0},
+        "fleet": {"robots": 4, "hz": 2, "duration_s": 3},
+    }
+    data.update(overrides)
+    for ex in data["executors"]:  # no fixed ports in tests: parallel runs must not collide
+        ex.setdefault("metrics_port", 0)
+    path = tmp_path / "cluster.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path, data

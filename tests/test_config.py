@@ -1,0 +1,110 @@
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from shared.config import ConfigError, config_from_dict, load_config
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def base() -> dict:
+    return {"models": [{"name": "a", "arch": "toy", "slo_ms": 100}, {"name": "b", "arch": "toy"}],
+            "executors": [{"name": "e0", "models": ["a", "b"]}]}
+
+
+def test_shipped_configs_load():
+    for path in (ROOT / "configs").glob("*.yaml"):
+        load_config(path)
+
+
+def test_defaults():
+    cfg = config_from_dict(base())
+    assert cfg.engine.max_batch == 2 and cfg.engine.policy == "esf" and cfg.models[1].slo_ms == 156.0
+
+
+@pytest.mark.parametrize("mutate,message", [
+    (lambda d: d["models"][1].update(slo_ms=-5), "models[1].slo_ms: expected a positive number"),
+    (lambda d: d["models"][1].update(slo_ms="fast"), "models[1].slo_ms: expected a number"),
+    (lambda d: d["models"][0].update(colour="red"), "models[0].colour: unknown key"),
+    (lambda d: d["models"][0].update(arch="gpt5"), "models[0].arch: unknown architecture 'gpt5'"),
+    (lambda d: d["models"][0].update(size="huge"), "models[0].size: toy has no size 'huge'"),
+    (lambda d: d["models"][1].update(name="a"), "models[1].name: duplicate name 'a'"),
+    (lambda d: d["executors"][0].update(models=["a", "zz"]), "executors[0].models[1]: no model named 'zz'"),
+    (lambda d: d["executors"][0].update(device="tpu"), "executors[0].device: expected 'cpu' or 'cuda:N'"),
+    (lambda d: d["executors"][0].update(models=["a"]), "models[1]: model 'b' is placed on no executor"),
+    (lambda d: d.update(engine={"max_batch": 3}), "engine.max_batch: expected a power of two"),
+    (lambda d: d.update(engine={"policy": "fifo"}), "engine.policy: expected one of esf, rr, lqf"),
+    (lambda d: d.update(engine={"shed_expired": "yes"}), "engine.shed_expired: expected true or false"),
+    (lambda d: d.update(router=[]), "router: expected a mapping"),
+    (lambda d: d.pop("executors"), "executors: missing"),
+    (lambda d: d.update(models="a"), "models: expected a list"),
+])
+def test_errors_name_their_path(mutate, message):
+    data = base()
+    mutate(data)
+    with pytest.raises(ConfigError) as e:
+        config_from_dict(data)
+    assert str(e.value).startswith(message), str(e.value)
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("models: [\n")
+    with pytest.raises(ConfigError, match="not valid YAML at line"):
+        load_config(bad)
+    bad.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="config: expected a mapping"):
+        load_config(bad)
+
+
+def test_cli_reports_config_errors_without_traceback(tmp_path):
+    data = base()
+    data["models"][1]["slo_ms"] = 0
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = subprocess.run([sys.executable, "-m", "shared.cli", "up", "-c", str(path)], capture_output=True, text=True,
+                         cwd=ROOT, timeout=60)
+    assert out.returncode == 2
+    assert "models[1].slo_ms: expected a positive number" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def placed(placement, gpus=4):
+    return {"gpus": gpus, "placement": placement,
+            "models": [{"name": f"pi0-{i}", "arch": "toy", "seed": i} for i in range(2)]
+            + [{"name": f"xr0-{i}", "arch": "toy2", "seed": i} for i in range(2)]}
+
+
+def test_placement_shorthands(monkeypatch):
+    from shared.config import _expand_placement
+
+    mix = _expand_placement(placed("mix"))
+    assert [e["device"] for e in mix["executors"]] == ["cuda:0", "cuda:1", "cuda:2", "cuda:3"]
+    assert all(e["models"] == ["pi0-0", "pi0-1", "xr0-0", "xr0-1"] for e in mix["executors"])
+    groups = _expand_placement(placed({"groups": {"toy": 1, "toy2": 3}}))
+    assert [e["models"] for e in groups["executors"]] == [["pi0-0", "pi0-1"]] + [["xr0-0", "xr0-1"]] * 3
+    listed = _expand_placement(placed({"groups": [{"arch": "toy", "gpus": [0, 2]}, {"arch": "toy2", "gpus": [1, 3]}]}))
+    assert listed["executors"][2]["models"] == ["pi0-0", "pi0-1"]
+
+
+@pytest.mark.parametrize("placement,message", [
+    ({"groups": {"toy": 1, "toy2": 0}}, "placement.groups.toy2: expected a positive number of GPUs"),
+    ({"groups": [{"arch": "toy", "gpus": []}, {"arch": "toy2", "gpus": [1]}]}, "placement.groups[0].gpus: the group is empty"),
+    ({"groups": [{"arch": "ghost", "gpus": [0]}]}, "placement.groups[0].arch: no model of architecture 'ghost'"),
+    ({"groups": [{"arch": "toy", "gpus": [0, 1]}, {"arch": "toy2", "gpus": [1, 2]}]}, "placement.groups[1].gpus: GPU 1 is already"),
+    ({"groups": [{"arch": "toy", "gpus": [0, 9]}]}, "placement.groups[0].gpus: 9 is not a GPU index"),
+    ({"groups": {"toy": 2}}, "placement.groups: no group serves ['xr0-0', 'xr0-1']"),
+    ({"groups": {"toy": 1, "toy2": 1}}, "placement.groups: executors ['gpu2', 'gpu3'] are in no group"),
+    ("spread", "placement: expected 'mix' or {groups: ...}"),
+])
+def test_placement_errors(placement, message):
+    from shared.config import _expand_placement
+
+    with pytest.raises(ConfigError) as e:
+        _expand_placement(placed(placement))
+    assert str(e.value).startswith(message), str(e.value)

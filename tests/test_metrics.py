@@ -1,0 +1,91 @@
+"""Every service serves /metrics with the documented names, and the values move under load."""
+
+import re
+import urllib.request
+
+import numpy as np
+
+from shared.client import RobionError, RobotClient
+from shared.cluster import LocalCluster
+from shared.config import load_config
+from tests.helpers import cluster_config, free_ports
+
+
+def scrape(port: int) -> str:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as resp:
+        return resp.read().decode()
+
+
+def value(text: str, name: str, **labels) -> float:
+    total = 0.0
+    for line in text.splitlines():
+        if not line.startswith(name + "{") and not line.startswith(name + " "):
+            continue
+        if all(f'{k}="{v}"' in line for k, v in labels.items()):
+            total += float(line.rsplit(" ", 1)[1])
+    return total
+
+
+def test_metrics_endpoints_and_movement(tmp_path):
+    rm, cm, em = free_ports(3)
+    path, data = cluster_config(tmp_path, executors=[{"name": "ex0", "device": "cpu", "models": ["toy-a", "toy-b"],
+                                                      "metrics_port": em}])
+    data["router"]["metrics_port"] = rm
+    data["control"]["metrics_port"] = cm
+    import yaml
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_config(path)
+    with LocalCluster(cfg, path, log_level="WARNING"):
+        before = scrape(em)
+        for name in ["robion_requests_total", "robion_request_duration_seconds", "robion_queue_wait_seconds",
+                     "robion_slo_attainment_ratio", "robion_queue_depth", "robion_batch_size",
+                     "robion_lockstep_duration_seconds", "robion_vlm_sm_level", "robion_executor_up",
+                     "robion_gpu_memory_used_bytes", "robion_inference_count_total", "robion_execution_count_total",
+                     "robion_stage_duration_seconds", "robion_slo_met_total"]:
+            assert f"# TYPE {name}" in before or f"# HELP {name}" in before, name
+        assert value(before, "robion_executor_up", executor="ex0") == 1
+        control = scrape(cm)
+        for name in ["robion_executors_registered", "robion_executor_up", "robion_routing_table_version",
+                     "robion_robots_assigned"]:
+            assert f"# HELP {name}" in control, name
+        assert value(control, "robion_executors_registered") == 1
+        router = scrape(rm)
+        for name in ["robion_router_requests_total", "robion_router_request_duration_seconds",
+                     "robion_router_in_flight_requests", "robion_router_routing_table_version"]:
+            assert f"# HELP {name}" in router, name
+
+        with RobotClient(cfg.router.bind) as client:
+            info = client.metadata()["toy-a"]
+            rng = np.random.default_rng(0)
+            images = {c: rng.integers(0, 256, info.image_shape, dtype=np.uint8) for c in info.cameras}
+            state = rng.standard_normal(info.state_dim).astype(np.float32)
+            for _ in range(12):
+                client.infer("toy-a", images, state)
+            try:
+                client.infer("toy-a", images, np.zeros(2, np.float32))
+            except RobionError:
+                pass
+        after = scrape(em)
+        assert value(after, "robion_requests_total", model="toy-a", status="ok") == 12
+        assert value(after, "robion_requests_total", model="toy-a", status="shape_mismatch") == 1
+        assert value(after, "robion_request_duration_seconds_count", model="toy-a") == 12
+        assert value(after, "robion_inference_count_total", model="toy-a") == 12
+        assert 1 <= value(after, "robion_execution_count_total", model="toy-a") <= 12
+        assert value(after, "robion_slo_met_total", model="toy-a") == 12
+        router = scrape(rm)
+        assert value(router, "robion_router_requests_total", model="toy-a", status="ok") == 12
+        assert value(router, "robion_router_request_duration_seconds_count", model="toy-a") == 12
+        assert re.search(r"robion_router_routing_table_version \d", router)
+
+
+def test_dashboard_queries_only_metrics_the_services_define():
+    import json
+    import os
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    dash = json.load(open(os.path.join(root, "deploy", "grafana-dashboard.json")))
+    source = "".join(open(os.path.join(root, "shared", "metrics.py")).read())
+    names = set(re.findall(r'"(robion_[a-z_]+)"', source))
+    used = {n for p in dash["panels"] for t in p["targets"] for n in re.findall(r"robion_[a-z_]+", t["expr"])}
+    base = {re.sub(r"_(bucket|count|sum)$", "", n) for n in used}
+    assert base <= names, base - names

@@ -1,0 +1,125 @@
+"""`robion plan` (python -m services.controlplane.planning): output, exit codes, input errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.controlplane.planning import problem_from_mapping
+from services.controlplane.solver import PlanInputError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PAPER = """\
+gpus: 2
+models:
+  A: {limit: 4, robots: 6, gpus: [0, 1]}   # limit = C_i, robots = N_i, GPUs hosting the model
+  B: {limit: 4, robots: 2, gpus: [0, 1]}
+"""
+
+
+def run_plan(tmp_path: Path, text: str, *args: str) -> subprocess.CompletedProcess[str]:
+    f = tmp_path / "plan.yaml"
+    f.write_text(text)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run(
+        [sys.executable, "-m", "services.controlplane.planning", str(f), *args],
+        capture_output=True, text=True, cwd=ROOT, env=env, timeout=60,
+    )
+
+
+def test_paper_example_json(tmp_path: Path) -> None:
+    out = run_plan(tmp_path, PAPER, "--json")
+    assert out.returncode == 0, out.stderr
+    data = json.loads(out.stdout)
+    assert set(data) == {"assignment", "objective", "feasible"}
+    assert data["objective"] == 4 and data["feasible"] is True
+    per_gpu = [{m: row[g] for m, row in data["assignment"].items() if g in row} for g in ("0", "1")]
+    assert sorted(per_gpu, key=len) == [{"A": 4}, {"A": 2, "B": 2}]
+
+
+def test_paper_example_table(tmp_path: Path) -> None:
+    out = run_plan(tmp_path, PAPER)
+    assert out.returncode == 0, out.stderr
+    assert "GPU0" in out.stdout and "GPU1" in out.stdout
+    assert out.stdout.count("100%") == 2
+    assert "objective: 4" in out.stdout and "proven optimal" in out.stdout
+
+
+def test_strategies_json(tmp_path: Path) -> None:
+    smg = run_plan(tmp_path, PAPER, "--strategy", "smg", "--json")
+    assert smg.returncode == 1  # GPU 0 serves 6 robots against a limit of 4
+    assert json.loads(smg.stdout) == {"assignment": {"A": {"0": 6}, "B": {"1": 2}}, "objective": 0, "feasible": False}
+    eps = run_plan(tmp_path, PAPER, "--strategy", "eps", "--json")
+    assert eps.returncode == 0
+    assert json.loads(eps.stdout) == {
+        "assignment": {"A": {"0": 3, "1": 3}, "B": {"0": 1, "1": 1}}, "objective": 6, "feasible": True,
+    }
+
+
+def test_infeasible_exit_1_with_explanation(tmp_path: Path) -> None:
+    out = run_plan(tmp_path, "gpus: 2\nmodels:\n  A: {limit: 4, robots: 9}\n  B: {limit: 4, robots: 2}\n")
+    assert out.returncode == 1
+    assert "Traceback" not in out.stderr
+    assert "A, B" in out.stderr and "GPUs 0, 1" in out.stderr and "Add at least 1 GPU" in out.stderr
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("gpus: 2\nmodels:\n  A: {limit: 0, robots: 6}\n", "models.A.limit: expected a positive integer"),
+        ("gpus: 2\nmodels:\n  A: {limit: 4, robots: 6, gpus: [0, 2]}\n", "models.A.gpus[1]: expected a GPU index in 0..1"),
+        ("gpus: 2\nmodels:\n  A: {limit: 4, robots: 1, gpus: []}\n", "models.A.gpus: model has 1 robots but no GPU hosts it"),
+        ("gpus: [\n", "not valid YAML"),
+    ],
+)
+def test_bad_file_exit_2(tmp_path: Path, text: str, message: str) -> None:
+    out = run_plan(tmp_path, text)
+    assert out.returncode == 2
+    assert message in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_missing_file_exit_2(tmp_path: Path) -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "services.controlplane.planning", str(tmp_path / "nope.yaml")],
+        capture_output=True, text=True, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60,
+    )
+    assert out.returncode == 2 and "cannot read file" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize(
+    "data, path",
+    [
+        ([1, 2], ""),
+        ({"models": {}}, "gpus"),
+        ({"gpus": 2}, "models"),
+        ({"gpus": 2, "models": [1]}, "models"),
+        ({"gpus": 2, "models": {}, "extra": 1}, "extra"),
+        ({"gpus": True, "models": {}}, "gpus"),
+        ({"gpus": 2, "models": {"A": 3}}, "models.A"),
+        ({"gpus": 2, "models": {"A": {"robots": 1}}}, "models.A.limit"),
+        ({"gpus": 2, "models": {"A": {"limit": 2}}}, "models.A.robots"),
+        ({"gpus": 2, "models": {"A": {"limit": 2.5, "robots": 1}}}, "models.A.limit"),
+        ({"gpus": 2, "models": {"A": {"limit": 2, "robots": -1}}}, "models.A.robots"),
+        ({"gpus": 2, "models": {"A": {"limit": 2, "robots": 1, "gpus": 0}}}, "models.A.gpus"),
+        ({"gpus": 2, "models": {"A": {"limit": 2, "robots": 1, "gpus": ["x"]}}}, "models.A.gpus[0]"),
+        ({"gpus": 2, "models": {"A": {"limit": 2, "robots": 1, "gpus": [1, 1]}}}, "models.A.gpus"),
+        ({"gpus": 2, "models": {"A": {"limit": 2, "robots": 1, "lmit": 3}}}, "models.A.lmit"),
+    ],
+)
+def test_problem_from_mapping_errors(data: object, path: str) -> None:
+    with pytest.raises(PlanInputError) as e:
+        problem_from_mapping(data)
+    assert e.value.path == path
+
+
+def test_problem_from_mapping_defaults_to_all_gpus() -> None:
+    p = problem_from_mapping({"gpus": 3, "models": {"A": {"limit": 4, "robots": 6}, "B": {"limit": 2, "robots": 0, "gpus": [1]}}})
+    assert p.num_gpus == 3
+    assert [(m.name, m.limit, m.robots, m.gpus) for m in p.models] == [("A", 4, 6, (0, 1, 2)), ("B", 2, 0, (1,))]

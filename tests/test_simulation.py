@@ -1,0 +1,266 @@
+"""Simulated robots and the capacity search (CPU, toy model, a few seconds per test)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from services.executor.engine import Engine, ServedModel
+from services.executor.scheduler import Result
+from services.executor.simulation import (CapacitySearch, EngineHost, Point, RobotGroup, SimConfig, SweepSearch,
+                                          compare_capacity, engine_factory, find_capacity, make_schedule,
+                                          simulate, sweep)
+from shared.config import EngineConfig
+from shared.models import build_model
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CPU = torch.device("cpu")
+
+
+@pytest.fixture(scope="module")
+def toy():
+    return build_model("toy", "tiny")
+
+
+def served(toy, slo_ms: float) -> dict[str, ServedModel]:
+    return {"toy": ServedModel("toy", toy, slo_ms / 1e3)}
+
+
+class QueueModelEngine(Engine):
+    """One server with a fixed service time per batch, kept in virtual time.
+
+    A batch starts when the server is free and its last request has arrived, and is done
+    ``service_s`` later; the reply is sent at once with that ``done``. Latencies then follow
+    from the schedule alone (no thread timing), so the capacity is known analytically.
+    """
+
+    def __init__(self, models, cfg, device, on_results, service_s: float):
+        super().__init__(models, cfg, device, on_results)
+        self.service_s = service_s
+        self.free = 0.0
+
+    def step(self) -> bool:
+        _, batch, _ = self.queues.take(self.cfg.max_batch)
+        if not batch:
+            return False
+        start = max(self.free, max(r.arrival for r in batch))
+        self.free = start + self.service_s
+        io = self.models[batch[0].model].model.io
+        self.on_results([Result(r, actions=np.zeros((io.horizon, io.action_dim), np.float32), done=self.free)
+                         for r in batch])
+        return True
+
+    def finish(self) -> None:
+        # Stopping answers everything: no virtual backlog may carry into the next epoch.
+        super().finish()
+        self.free = 0.0
+
+
+class BlackHoleEngine(Engine):
+    """Takes requests and never answers them."""
+
+    def step(self) -> bool:
+        _, batch, _ = self.queues.take(self.cfg.max_batch)
+        return bool(batch)
+
+
+def queue_model_factory(toy, slo_ms: float, service_s: float, max_batch: int = 1):
+    cfg = EngineConfig(max_batch=max_batch, shed_expired=False)
+    return lambda sink: QueueModelEngine(served(toy, slo_ms), cfg, CPU, sink, service_s)
+
+
+# ----------------------------------------------------------------------------- schedule
+
+def test_schedule_is_seeded_periodic_and_redrawn_per_epoch():
+    work = [RobotGroup("a", 3, 2.0), RobotGroup("b", 2, 5.0)]
+    one = make_schedule(work, 4.0, np.random.default_rng(np.random.SeedSequence([7, 0])))
+    again = make_schedule(work, 4.0, np.random.default_rng(np.random.SeedSequence([7, 0])))
+    other = make_schedule(work, 4.0, np.random.default_rng(np.random.SeedSequence([7, 1])))
+    assert one == again
+    assert [s.t for s in one] != [s.t for s in other]
+    assert [s.t for s in one] == sorted(s.t for s in one)
+    for g, group in enumerate(work):
+        period = 1 / group.hz
+        for r in range(group.robots):
+            ts = [s.t for s in one if s.group == g and s.robot == r]
+            assert 0 <= ts[0] < period
+            assert np.allclose(np.diff(ts), period)  # on the robot's own clock
+            assert ts[-1] < 4.0 <= ts[-1] + period + 1e-12
+    assert len(one) == 3 * 8 + 2 * 20
+
+
+def test_seeded_simulations_send_the_same_requests(toy):
+    cfg = SimConfig(epochs=2, duration_s=0.3, drain_s=0.2, seed=3, network="none")
+    work = [RobotGroup("toy", 8, 10)]
+    a = simulate(queue_model_factory(toy, 100, 0.01), work, cfg)
+    b = simulate(queue_model_factory(toy, 100, 0.01), work, cfg)
+    # Virtual-time latencies (queueing at 80% load) depend on the schedule only: same seed, same numbers.
+    assert [e.overall.sent for e in a.epochs] == [e.overall.sent for e in b.epochs] == [24, 24]
+    assert a.models["toy"].epoch_p99_ms == pytest.approx(b.models["toy"].epoch_p99_ms)
+    # Fresh offsets each epoch: the epochs differ.
+    assert a.epochs[0].overall.p50_ms != pytest.approx(a.epochs[1].overall.p50_ms)
+
+
+# ----------------------------------------------------------------------------- real engine, toy model
+
+def test_light_load_meets_every_deadline(toy):
+    host = EngineHost(engine_factory("monolithic", served(toy, 300)), label="mono")
+    res = simulate(host, [RobotGroup("toy", 2, 10.0)], SimConfig(epochs=2, duration_s=0.5, drain_s=0.5))
+    s = res.models["toy"]
+    assert s.sent == 20 and s.ok == 20 and s.misses == 0
+    assert s.slo_attainment == 1.0 and res.overall.slo_attainment == 1.0
+    assert len(s.epoch_slo_attainment) == 2
+    # End to end includes the WiFi 7 model: two 64x64x3 images up and the chunk down, >= 5 ms of base latency.
+    assert 5.0 < s.p50_ms <= s.p99_ms < 300
+    assert res.submit_lag_max_ms < 50
+    assert set(res.to_dict()) >= {"models", "overall", "epochs", "submit_lag_max_ms"}
+
+
+def test_deadline_below_model_latency_misses_everything(toy):
+    host = EngineHost(engine_factory("monolithic", served(toy, 0.2)), label="mono")
+    res = simulate(host, [RobotGroup("toy", 3, 10.0)], SimConfig(epochs=1, duration_s=0.4, drain_s=0.3,
+                                                                  network="none"))
+    s = res.models["toy"]
+    assert s.sent > 0 and s.met == 0 and s.misses == s.sent and s.slo_attainment == 0.0
+    assert s.late + sum(s.errors.values()) + s.no_reply == s.sent  # late replies or shed as expired
+
+
+def test_unanswered_requests_are_misses(toy):
+    cfg = EngineConfig(max_batch=1)
+    res = simulate(lambda sink: BlackHoleEngine(served(toy, 100), cfg, CPU, sink), [RobotGroup("toy", 2, 10.0)],
+                   SimConfig(epochs=1, duration_s=0.3, drain_s=0.1))
+    s = res.models["toy"]
+    assert s.sent > 0 and s.no_reply == s.sent and s.misses == s.sent and s.slo_attainment == 0.0
+    assert math.isnan(s.p99_ms) and res.to_dict()["models"]["toy"]["p99_ms"] is None
+
+
+def test_requests_still_queued_at_the_end_are_answered_as_errors(toy):
+    # An engine that never steps: stopping it answers the queue with UNAVAILABLE, which counts as a miss.
+    class Idle(Engine):
+        def step(self) -> bool:
+            return False
+
+    cfg = EngineConfig(max_batch=1)
+    res = simulate(lambda sink: Idle(served(toy, 100), cfg, CPU, sink), [RobotGroup("toy", 2, 10.0)],
+                   SimConfig(epochs=1, duration_s=0.3, drain_s=0.1))
+    s = res.models["toy"]
+    assert s.errors == {"UNAVAILABLE": s.sent} and s.slo_attainment == 0.0
+
+
+# ----------------------------------------------------------------------------- capacity search
+
+def _point(n: int, passed: bool) -> Point:
+    return Point(robots=n, slo_attainment=1.0 if passed else 0.5, p50_ms=1, p99_ms=1, passed=passed, epochs=1,
+                 sent=1, misses=0, errors={}, no_reply=0, submit_lag_max_ms=0, wall_s=0)
+
+
+@pytest.mark.parametrize("threshold,start,max_robots", [(37, 1, 256), (0, 1, 64), (64, 4, 64), (5, 8, 100)])
+def test_search_finds_a_monotone_threshold(threshold, start, max_robots):
+    s = CapacitySearch(0.98, start, max_robots)
+    while not s.done:
+        n = s.next()
+        s.record(_point(n, n <= threshold))
+    assert s.capacity == min(threshold, max_robots)
+    assert len(s.points) <= 2 * math.ceil(math.log2(max_robots)) + 2
+    assert len({p.robots for p in s.points}) == len(s.points)
+
+
+def test_search_trusts_a_failure_below_a_pass():
+    s = CapacitySearch(0.98, 1, 64)
+    outcomes = {1: True, 2: True, 4: True, 8: True, 16: False, 12: True, 14: False, 13: True}
+    while not s.done:
+        n = s.next()
+        s.record(_point(n, outcomes.get(n, n <= 3)))
+    # 13 passes, 14 and 16 fail: capacity 13; a later noisy pass above a failure is never taken.
+    assert s.capacity == 13
+
+
+def test_sweep_capacity_stops_at_the_first_failure():
+    s = SweepSearch([8, 2, 4, 16])
+    for n, ok in [(2, True), (4, True), (8, False), (16, True)]:
+        assert s.next() == n
+        s.record(_point(n, ok))
+    assert s.done and s.capacity == 4
+
+
+def test_capacity_search_finds_the_analytic_threshold():
+    """Service S per request at max_batch 1, robots at f: capacity = floor(1 / (S f)).
+
+    Up to that count the work arriving in any period fits in it, so no request waits more
+    than n S <= 1/f = the deadline; one robot more and the backlog grows without bound.
+    """
+    toy = build_model("toy", "tiny")
+    hz, expect = 40.0, 10
+    service = 1.0 / (hz * (expect + 0.2))
+    host = EngineHost(queue_model_factory(toy, 1e3 / hz, service), label="fake")
+    res = find_capacity(host, "toy", hz, SimConfig(epochs=1, duration_s=0.6, drain_s=0.2, network="none"),
+                        max_robots=32, progress=False)
+    assert res.capacity == expect
+    tried = {p.robots: p for p in res.points}
+    assert tried[expect].passed and tried[expect].slo_attainment == 1.0
+    assert not tried[expect + 1].passed
+    assert len(host.prepare_s) == 1  # one engine, reused for every point
+
+
+def test_compare_sweeps_engines_side_by_side_and_rebuilds_without_reuse():
+    toy = build_model("toy", "tiny")
+    hz = 40.0
+    fast = EngineHost(queue_model_factory(toy, 25, 1 / (hz * 8.2)), label="fast")
+    slow = EngineHost(queue_model_factory(toy, 25, 1 / (hz * 4.2)), reuse=False, label="slow")
+    seen: list[tuple[str, int]] = []
+    out = compare_capacity({"fast": fast, "slow": slow}, "toy", hz,
+                           SimConfig(epochs=1, duration_s=0.5, drain_s=0.2, network="none"),
+                           robots=[4, 6, 8], progress=False, on_point=lambda e, p: seen.append((e, p.robots)))
+    assert out["fast"].capacity == 8 and out["slow"].capacity == 4
+    assert seen == [("fast", 4), ("slow", 4), ("fast", 6), ("slow", 6), ("fast", 8), ("slow", 8)]
+    assert len(fast.prepare_s) == 1 and len(slow.prepare_s) == 3
+
+
+def test_sweep_runs_every_epoch_of_a_failing_point():
+    toy = build_model("toy", "tiny")
+    res = sweep(queue_model_factory(toy, 25, 1 / (40 * 2.2)), "toy", [6], 40.0,
+                SimConfig(epochs=2, duration_s=0.3, drain_s=0.1, network="none"), progress=False)
+    assert res.points[0].epochs == 2 and not res.points[0].passed and res.capacity == 0
+
+
+def test_engine_factory_rejects_unknown_config_fields(toy):
+    with pytest.raises(ValueError, match="no field"):
+        engine_factory("monolithic", served(toy, 100), no_such_field=1)
+
+
+# ----------------------------------------------------------------------------- CLI
+
+def test_cli_writes_capacity_json_and_plot(tmp_path):
+    out, png = tmp_path / "cap.json", tmp_path / "cap.png"
+    cmd = [sys.executable, os.path.join(ROOT, "bench", "capacity.py"), "--models", "toy", "--engines",
+           "monolithic,rr=monolithic:policy=rr", "--size", "tiny", "--device", "cpu", "--hz", "10", "--epochs", "1",
+           "--duration", "0.3", "--drain", "0.3", "--sweep", "1,2", "--deadline", "toy=500", "--out", str(out),
+           "--plot", str(png), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(out.read_text())
+    assert doc["schema"] == "robion.capacity/1" and doc["target"] == 0.98
+    assert doc["capacity"] == {"toy": {"monolithic": 2, "rr": 2}}
+    assert doc["ratios"] == {"toy": {"rr/monolithic": 1.0}}
+    assert doc["complete"] == {"toy": {"monolithic": True, "rr": True}}
+    assert doc["deadlines_ms"] == {"toy": 500.0}
+    for engine in ("monolithic", "rr"):
+        pts = doc["curves"]["toy"][engine]
+        assert [p["robots"] for p in pts] == [1, 2]
+        assert {"slo_attainment", "p50_ms", "p99_ms", "passed", "epochs", "sent", "misses",
+                "submit_lag_max_ms"} <= set(pts[0])
+    assert doc["settings"]["engines"]["rr"] == {"kind": "monolithic", "max_batch": 2, "policy": "rr"}
+    assert {"gpu", "date", "commit", "command", "torch"} <= set(doc["meta"])
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        assert not png.exists()
+    else:
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
