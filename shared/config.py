@@ -66,12 +66,20 @@ class ExecutorConfig:
 
 @dataclass
 class EngineConfig:
-    kind: str = "monolithic"  # which engine runs the stages; see services/executor/engines.py
+    kind: str = "monolithic"  # which engine runs the stages: a key of ENGINES in services/executor/engine.py
     max_batch: int = field(default=2, metadata=_check(_power_of_two, "expected a power of two (1, 2, 4, ...)"))
     policy: str = "esf"  # esf (earliest-SLO-first), rr (round-robin), lqf (largest-queue-first)
     max_queue: int = field(default=256, metadata=_check(_positive, "expected a positive integer"))
     shed_expired: bool = True  # answer DEADLINE_EXCEEDED instead of running requests already late
     seed: int = 0  # noise generator seed
+    # Lockstep engines (robion and its comparison engines):
+    sm_policy: str = "table"  # VLM SM restriction: table (profiled per stage pair), none, static
+    static_sms: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))
+    sm_table: str | None = None  # SM table JSON to use (profiled and written there when missing)
+    profile_dir: str = "state/profiles"  # where SM tables are cached when sm_table is not given
+    profile_repeats: int = field(default=5, metadata=_check(_positive, "expected a positive integer"))
+    graphs: bool = True  # CUDA graphs per (model, stage, batch, SM level); false: eager stages (debugging)
+    telemetry_file: str | None = None  # append one JSON line per lockstep
 
 
 @dataclass
@@ -140,6 +148,7 @@ def dial_address(bind: str, connect: str | None = None) -> str:
 STRATEGIES = ("ip", "smg", "eps", "none")
 ENGINE_KINDS = ("monolithic", "robion")
 POLICIES = ("esf", "rr", "lqf")
+SM_POLICIES = ("table", "none", "static")
 NETWORKS = ("wifi7", "fast_cloud", "slow_cloud", "5g", "none")
 
 
@@ -247,6 +256,10 @@ def _validate(cfg: ClusterConfig) -> None:
         raise ConfigError(f"engine.kind: expected one of {', '.join(ENGINE_KINDS)}, got {cfg.engine.kind!r}")
     if cfg.engine.policy not in POLICIES:
         raise ConfigError(f"engine.policy: expected one of {', '.join(POLICIES)}, got {cfg.engine.policy!r}")
+    if cfg.engine.sm_policy not in SM_POLICIES:
+        raise ConfigError(f"engine.sm_policy: expected one of {', '.join(SM_POLICIES)}, got {cfg.engine.sm_policy!r}")
+    if cfg.engine.sm_policy == "static" and (cfg.engine.static_sms <= 0 or cfg.engine.static_sms % 8):
+        raise ConfigError("engine.static_sms: sm_policy static needs a positive multiple of 8")
     if cfg.control.strategy not in STRATEGIES:
         raise ConfigError(f"control.strategy: expected one of {', '.join(STRATEGIES)}, got {cfg.control.strategy!r}")
     if cfg.fleet.network not in NETWORKS:

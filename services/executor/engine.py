@@ -124,6 +124,8 @@ ENGINES: dict[str, type[Engine]] = {"monolithic": MonolithicEngine}
 
 
 def make_engine(models: dict[str, ServedModel], cfg: EngineConfig, device: torch.device, on_results: ResultSink) -> Engine:
+    import services.executor.lockstep  # noqa: F401  (registers "robion"; imported late: it builds on this module)
+
     if cfg.kind not in ENGINES:
         raise ValueError(f"engine {cfg.kind!r} is not available; available: {', '.join(ENGINES)}")
     return ENGINES[cfg.kind](models, cfg, device, on_results)

@@ -38,6 +38,7 @@ class Result:
     vlm_s: float = 0.0
     action_s: float = 0.0
     done: float = field(default_factory=time.monotonic)
+    lockstep: int = -1  # index of the lockstep that ran its VLM stage (lockstep engines)
 
 
 def batch_size_for(pending: int, max_batch: int) -> int:
@@ -51,7 +52,7 @@ class EarliestSLOFirst:
 
     name = "esf"
 
-    def pick(self, queues: dict[str, deque[Request]]) -> str:
+    def pick(self, queues: dict[str, deque[Request]], commit: bool = True) -> str:
         return min((q[0].deadline, name) for name, q in queues.items() if q)[1]
 
 
@@ -61,13 +62,14 @@ class RoundRobin:
     def __init__(self) -> None:
         self._last = ""
 
-    def pick(self, queues: dict[str, deque[Request]]) -> str:
+    def pick(self, queues: dict[str, deque[Request]], commit: bool = True) -> str:
         names = sorted(queues)
         start = names.index(self._last) + 1 if self._last in queues else 0
         for i in range(len(names)):
             name = names[(start + i) % len(names)]
             if queues[name]:
-                self._last = name
+                if commit:
+                    self._last = name
                 return name
         raise LookupError("no pending request")
 
@@ -75,7 +77,7 @@ class RoundRobin:
 class LargestQueueFirst:
     name = "lqf"
 
-    def pick(self, queues: dict[str, deque[Request]]) -> str:
+    def pick(self, queues: dict[str, deque[Request]], commit: bool = True) -> str:
         # Ties go to the older head, so a queue cannot starve behind an equal-length one.
         return min((-len(q), q[0].arrival, name) for name, q in queues.items() if q)[2]
 
@@ -140,6 +142,16 @@ class ModelQueues:
             batch = [q.popleft() for _ in range(n)]
             self._pending -= n
             return model, batch, expired
+
+    def peek(self, max_batch: int) -> tuple[str, list[Request]]:
+        """The batch ``take`` would return now if nothing changed (no side effects): lets the
+        engine copy the likely next batch's observations while the GPU is busy."""
+        with self._cond:
+            if self._pending == 0:
+                return "", []
+            model = self._policy.pick(self._queues, commit=False)
+            q = self._queues[model]
+            return model, [q[i] for i in range(batch_size_for(len(q), max_batch))]
 
     def depths(self) -> dict[str, int]:
         with self._cond:

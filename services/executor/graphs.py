@@ -1,0 +1,110 @@
+"""CUDA graphs of a model's stages: one per (batch size, SM level) for the VLM stage and one
+per batch size for the action stage, over ``BufferedStages``' static buffers.
+
+Why one VLM graph per SM level: a captured kernel keeps the execution context (and so the
+SM limit) of the stream it was captured on, whatever stream replays it. Restricting the
+VLM stage to a level therefore means capturing it on that level's green-context stream.
+
+Memory: all VLM graphs share one pool and all action graphs another (pools are passed in,
+so co-located models share them too). Graphs of one pool never run concurrently (one VLM
+stream, one action stream), and every tensor a graph hands on lives in buffers allocated
+outside the pools, so a later replay of another graph can only overwrite dead intermediates.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import torch
+
+from services.executor.sm import GreenStreams, Level, level_name
+from services.executor.stages import BufferedStages
+from shared.models.base import VLAModel
+
+log = logging.getLogger(__name__)
+
+WARMUP_RUNS = 2  # eager runs on the capture stream first: cuBLAS workspaces, lazy inits, autotuning
+
+
+@dataclass
+class GraphPools:
+    """Memory pools shared by every model's graphs on one device."""
+
+    vlm: tuple
+    action: tuple
+
+    @classmethod
+    def create(cls) -> "GraphPools":
+        return cls(torch.cuda.graph_pool_handle(), torch.cuda.graph_pool_handle())
+
+
+class GraphStages(BufferedStages):
+    """``BufferedStages`` whose VLM and action steps replay captured CUDA graphs."""
+
+    def __init__(self, model: VLAModel, device: torch.device, batch_sizes: list[int], seed: int,
+                 pools: GraphPools, green: GreenStreams | None, capture_stream: torch.cuda.Stream,
+                 action_stream: torch.cuda.Stream | None = None):
+        super().__init__(model, device, batch_sizes, seed)
+        self.pools = pools
+        self.green = green
+        self.capture_stream = capture_stream  # unrestricted VLM captures (level None)
+        self.action_stream = action_stream or capture_stream
+        self.vlm_graphs: dict[tuple[int, Level], torch.cuda.CUDAGraph] = {}
+        self.action_graphs: dict[int, torch.cuda.CUDAGraph] = {}
+        self.capture_s = 0.0
+
+    def _stream(self, level: Level) -> torch.cuda.Stream:
+        if level is None:
+            return self.capture_stream
+        if self.green is None:
+            raise RuntimeError(f"SM level {level} needs green contexts, which this engine did not create")
+        return self.green.stream(level)
+
+    def _capture(self, body, stream: torch.cuda.Stream, pool: tuple) -> torch.cuda.CUDAGraph:
+        stream.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(stream):
+            for _ in range(WARMUP_RUNS):
+                body()
+        stream.synchronize()
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, pool=pool, stream=stream):
+            body()
+        stream.synchronize()
+        return graph
+
+    def capture_action(self) -> None:
+        t0 = time.perf_counter()
+        for b in self.batch_sizes:
+            if b not in self.action_graphs:
+                self.action_graphs[b] = self._capture(lambda b=b: self._action_body(b), self.action_stream,
+                                                      self.pools.action)
+        self.capture_s += time.perf_counter() - t0
+
+    def capture_vlm(self, b: int, levels: set[Level]) -> None:
+        t0 = time.perf_counter()
+        for level in sorted(levels, key=lambda lv: (lv is None, lv or 0)):
+            if (b, level) not in self.vlm_graphs:
+                self.vlm_graphs[(b, level)] = self._capture(lambda: self._vlm_body(b), self._stream(level),
+                                                            self.pools.vlm)
+        dt = time.perf_counter() - t0
+        self.capture_s += dt
+        log.debug("%s: VLM graphs for batch %d at levels %s in %.2f s", self.arch, b,
+                  [level_name(lv) for lv in levels], dt)
+
+    def drop_vlm(self, keep: dict[int, set[Level]]) -> None:
+        """Release VLM graphs of levels the serving table does not use (after profiling)."""
+        for key in [k for k in self.vlm_graphs if k[1] not in keep.get(k[0], set())]:
+            del self.vlm_graphs[key]
+
+    def vlm(self, b: int, level: Level = None) -> None:
+        self.upload(b)
+        graph = self.vlm_graphs.get((b, level))
+        if graph is None:
+            raise KeyError(f"{self.arch}: no VLM graph for batch {b} at SM level {level_name(level)}")
+        graph.replay()
+
+    def action(self, b: int, slot: int) -> None:
+        self.action_graphs[b].replay()
+        self.host_out[b][slot].copy_(self.dev_out[b], non_blocking=True)

@@ -1,0 +1,506 @@
+"""Robion's engine: the VLM and action stages on two streams, advancing in locksteps.
+
+Lockstep k runs the VLM stage of batch k (VLM stream, SM-restricted by the policy) beside
+the action stage of batch k-1 (action stream, unrestricted). Requests are admitted only
+at a lockstep start; the lockstep ends when both stages have finished. Batch k's handoff
+stays in the VLM side's static buffer until lockstep k+1 copies it (one device copy on
+the action stream) into the action side's buffer, and batch k-1's actions reach pinned
+host memory at the end of its action stage.
+
+One thread drives both streams: graph launches are asynchronous, so launching the action
+graph, then the VLM graph, then waiting on two events costs a few microseconds and needs
+no barrier between threads. The loop is arranged so that everything not needed to start
+the next lockstep (replies, telemetry) happens while the GPU is busy.
+
+The same loop runs on the CPU with ``HostRunner`` (stages run eagerly, in launch order),
+which is what the unit tests exercise.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from services.executor.engine import ENGINES, Engine, ResultSink, ServedModel
+from services.executor.scheduler import Request, Result
+from services.executor.sm import Level, SMPolicy, StaticLevel, TableLevel, Unrestricted, green_contexts_available
+from services.executor.stages import BufferedStages
+from services.executor.telemetry import LockstepRecord, Telemetry
+from shared.config import EngineConfig
+from shared.protocol import ErrorCode
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class StageTimes:
+    vlm_ms: float
+    action_ms: float
+    duration_ms: float
+    gap_us: float | None  # device idle before this lockstep's first stage (None when unknown)
+    gap_last_us: float | None = None  # from the previous lockstep's end to this one's later stage start
+
+
+class HostRunner:
+    """The CPU stand-in for two streams: launches only queue the stages, ``wait`` runs them
+    (action first, as launched), so what a stage sees matches the GPU's asynchronous order:
+    anything the engine does between launch and wait happens "during" the lockstep."""
+
+    def __init__(self, ring: int = 8):
+        self._ring = [[0.0, 0.0, 0.0, 0.0] for _ in range(ring)]
+        self._t = self._ring[0]
+        self._queued: list[tuple[int, object]] = []
+
+    def begin(self, index: int) -> None:
+        self._t = self._ring[index % len(self._ring)]
+        self._t[:] = [0.0, 0.0, 0.0, 0.0]
+        self._queued.clear()
+
+    def launch_handoff(self, stages: BufferedStages, b: int) -> None:
+        self._queued.append((2, lambda: stages.handoff(b)))
+
+    def launch_action(self, stages: BufferedStages, b: int, slot: int) -> None:
+        self._queued.append((3, lambda: stages.action(b, slot)))
+
+    def launch_vlm(self, stages: BufferedStages, b: int, level: Level, after_handoff: bool) -> None:
+        self._queued.append((0, lambda: stages.vlm(b, level)))
+
+    def end_launch(self) -> None:
+        pass
+
+    def wait(self) -> None:
+        queued, self._queued = self._queued, []
+        for at, run in queued:
+            t0 = time.perf_counter()
+            run()
+            t1 = time.perf_counter()
+            if at == 0:
+                self._t[0:2] = [t0, t1]
+            elif at == 2:
+                self._t[2:4] = [t0, t1]
+            else:  # the action stage's time runs from its handoff copy
+                self._t[3] = t1
+
+    def measure(self, index: int, after_previous: bool) -> StageTimes:
+        vs, ve, as_, ae = self._ring[index % len(self._ring)]
+        vlm, act = (ve - vs) * 1e3, (ae - as_) * 1e3
+        return StageTimes(vlm, act, vlm + act, None)
+
+
+@dataclass
+class _Events:
+    vlm_start: torch.cuda.Event = field(default_factory=lambda: torch.cuda.Event(enable_timing=True))
+    vlm_end: torch.cuda.Event = field(default_factory=lambda: torch.cuda.Event(enable_timing=True))
+    act_start: torch.cuda.Event = field(default_factory=lambda: torch.cuda.Event(enable_timing=True))
+    act_end: torch.cuda.Event = field(default_factory=lambda: torch.cuda.Event(enable_timing=True))
+    handoff: torch.cuda.Event = field(default_factory=torch.cuda.Event)
+    has_vlm: bool = False
+    has_act: bool = False
+    last_end: torch.cuda.Event | None = None
+
+
+class CudaRunner:
+    """Launches a lockstep on two CUDA streams and waits for it with events (never a device sync).
+
+    Events live in a ring, so a finished lockstep's timings can still be read one lockstep
+    later, while the next one runs.
+    """
+
+    def __init__(self, device: torch.device, ring: int = 8, green=None, eager_vlm: bool = False):
+        self.device = device
+        self.vlm_stream = torch.cuda.Stream(device)
+        self.action_stream = torch.cuda.Stream(device)
+        self.green = green
+        self.eager_vlm = eager_vlm  # ungraphed VLM: launch on the level's green stream to restrict it
+        self._home = torch.cuda.current_stream(device)
+        self._ring = [_Events() for _ in range(ring)]
+        self._ev = self._ring[0]
+
+    def begin(self, index: int) -> None:
+        ev = self._ev = self._ring[index % len(self._ring)]
+        ev.has_vlm = ev.has_act = False
+        ev.last_end = None
+
+    def launch_handoff(self, stages: BufferedStages, b: int) -> None:
+        """First part of the action stage: copy the handoff into the action side's buffers."""
+        ev, s = self._ev, self.action_stream
+        torch.cuda.set_stream(s)
+        ev.act_start.record(s)
+        stages.handoff(b)
+        ev.handoff.record(s)
+
+    def launch_action(self, stages: BufferedStages, b: int, slot: int) -> None:
+        ev, s = self._ev, self.action_stream
+        torch.cuda.set_stream(s)
+        stages.action(b, slot)
+        ev.act_end.record(s)
+        ev.has_act = True
+
+    def launch_vlm(self, stages: BufferedStages, b: int, level: Level, after_handoff: bool) -> None:
+        ev = self._ev
+        s = self.green.stream(level) if self.eager_vlm and level is not None else self.vlm_stream
+        torch.cuda.set_stream(s)
+        ev.vlm_start.record(s)
+        if after_handoff:
+            # Same model and batch size as the action stage's batch: this VLM overwrites the
+            # buffer the handoff copy is reading.
+            s.wait_event(ev.handoff)
+        stages.vlm(b, level)
+        ev.vlm_end.record(s)
+        ev.has_vlm = True
+
+    def end_launch(self) -> None:
+        torch.cuda.set_stream(self._home)
+
+    def wait(self) -> None:
+        ev = self._ev
+        if ev.has_vlm:
+            ev.vlm_end.synchronize()
+        if ev.has_act:
+            ev.act_end.synchronize()
+
+    def measure(self, index: int, after_previous: bool) -> StageTimes:
+        """Timings of a finished lockstep; ``after_previous``: it followed lockstep index-1 without idling."""
+        ev = self._ring[index % len(self._ring)]
+        ref = ev.vlm_start if ev.has_vlm else ev.act_start
+        starts, ends = [(0.0, ref)], []
+        vlm_ms = act_ms = 0.0
+        if ev.has_vlm:
+            vlm_ms = ev.vlm_start.elapsed_time(ev.vlm_end)
+            ends.append((vlm_ms, ev.vlm_end))
+        if ev.has_act:
+            a0 = ref.elapsed_time(ev.act_start) if ev.has_vlm else 0.0
+            act_ms = ev.act_start.elapsed_time(ev.act_end)
+            starts.append((a0, ev.act_start))
+            ends.append((a0 + act_ms, ev.act_end))
+        first = min(t for t, _ in starts)
+        last, ev.last_end = max(ends, key=lambda te: te[0])
+        gap_us = gap_last_us = None
+        prev = self._ring[(index - 1) % len(self._ring)]
+        if after_previous and prev.last_end is not None:
+            to_ref = prev.last_end.elapsed_time(ref)
+            gap_us = (to_ref + first) * 1e3
+            gap_last_us = (to_ref + max(t for t, _ in starts)) * 1e3
+        return StageTimes(vlm_ms, act_ms, last - first, gap_us, gap_last_us)
+
+
+@dataclass
+class _Batch:
+    model: str
+    stages: BufferedStages
+    requests: list[Request]
+    admitted: float
+    lockstep: int
+    vlm_end: float = 0.0
+
+    @property
+    def b(self) -> int:
+        return len(self.requests)
+
+
+@dataclass
+class _Launched:
+    index: int
+    start: float
+    vlm: _Batch | None
+    act: _Batch | None
+    slot: int
+    level: Level
+    cpu_gap_us: float | None
+    after_previous: bool
+    end: float = 0.0
+
+
+def batch_sizes(max_batch: int) -> list[int]:
+    return [1 << i for i in range(max_batch.bit_length()) if 1 << i <= max_batch]
+
+
+class LockstepEngine(Engine):
+    """The two-stream lockstep engine; the SM policy is what the comparison engines vary."""
+
+    def __init__(self, models: dict[str, ServedModel], cfg: EngineConfig, device: torch.device,
+                 on_results: ResultSink, sm_policy: SMPolicy | None = None):
+        super().__init__(models, cfg, device, on_results)
+        self.batch_sizes = batch_sizes(cfg.max_batch)
+        self.sm_policy = sm_policy
+        self.telemetry = Telemetry(path=cfg.telemetry_file)
+        self.stages: dict[str, BufferedStages] = {}
+        self.runner: HostRunner | CudaRunner | None = None
+        self.green = None
+        self.table = None  # the profiled SM table in use, when the policy is table-driven
+        self.prepare_s: dict[str, float] = {}
+        self._pending: _Batch | None = None  # passed the VLM stage; its action stage is next
+        self._last: _Launched | None = None  # finished; replies and telemetry not yet out
+        self._index = 0
+        self._last_end = 0.0
+        self._back_to_back = False
+        self._expected: dict[tuple[str, str, int], float] = {}  # EMA of stage times (ms) by (arch, stage, batch)
+        # Noise is drawn when a request is submitted (seeded, per model, in arrival order), so
+        # drawing it costs the lockstep loop nothing and prestaging copies it with the observations.
+        self._noise_gens = {name: torch.Generator().manual_seed(cfg.seed) for name in models}
+        self._noise_lock = threading.Lock()
+
+    # ------------------------------------------------------------------ start-up
+
+    def _graphed(self) -> bool:
+        return self.device.type == "cuda" and self.cfg.graphs
+
+    def prepare(self) -> None:
+        t0 = time.perf_counter()
+        if self.device.type != "cuda":
+            self.runner = HostRunner()
+            self.stages = {name: BufferedStages(m.model, self.device, self.batch_sizes, self.cfg.seed)
+                           for name, m in self.models.items()}
+            for st in self.stages.values():
+                st.allocate()
+            if self.sm_policy is None:
+                self.sm_policy = Unrestricted()
+            self.prepare_s["total"] = time.perf_counter() - t0
+            return
+        self._prepare_cuda()
+        self.prepare_s["total"] = time.perf_counter() - t0
+        log.info("lockstep engine ready in %.1f s (%s)", self.prepare_s["total"],
+                 ", ".join(f"{k} {v:.1f} s" for k, v in self.prepare_s.items() if k != "total"))
+
+    def _prepare_cuda(self) -> None:
+        from services.executor import profiler
+        from services.executor.graphs import GraphPools, GraphStages
+        from services.executor.sm import GreenStreams, sm_count, sm_levels
+
+        torch.cuda.set_device(self.device)
+        t0 = time.perf_counter()
+        self.runner = CudaRunner(self.device)
+        pools = GraphPools.create() if self._graphed() else None
+        if self._graphed():
+            self.stages = {name: GraphStages(m.model, self.device, self.batch_sizes, self.cfg.seed, pools, None,
+                                             self.runner.vlm_stream, self.runner.action_stream)
+                           for name, m in self.models.items()}
+        else:
+            self.stages = {name: BufferedStages(m.model, self.device, self.batch_sizes, self.cfg.seed)
+                           for name, m in self.models.items()}
+        for st in self.stages.values():
+            st.allocate()
+        torch.cuda.synchronize(self.device)
+        self.prepare_s["buffers"] = time.perf_counter() - t0
+
+        policy = self.sm_policy or self._policy_from_config()
+        by_arch = {}
+        for st in self.stages.values():
+            by_arch.setdefault(st.arch, st)
+        missing: list[tuple[str, int, str, int]] = []
+        levels_needed: set[Level] = set()
+        if isinstance(policy, _PendingTable):
+            table = policy.table
+            missing = profiler.missing_combos(table, sorted(by_arch), self.batch_sizes)
+            if missing and not self._graphed():
+                raise RuntimeError("profiling SM levels needs CUDA graphs (engine.graphs: true)")
+            levels_needed |= set(table.best_levels().values())
+            if missing:
+                levels_needed |= set(sm_levels(sm_count(self.device)))
+        else:
+            for st in self.stages.values():
+                for b in self.batch_sizes:
+                    levels_needed |= policy.levels_for(st.arch, b)
+        if any(lv is not None for lv in levels_needed):
+            if not green_contexts_available():
+                raise RuntimeError("SM restriction needs torch.cuda.green_contexts (torch >= 2.10 built with CUDA 12.4+)")
+            t1 = time.perf_counter()
+            self.green = GreenStreams(self.device, sorted(lv for lv in levels_needed if lv is not None))
+            self.runner.green = self.green
+            self.runner.eager_vlm = not self._graphed()
+            for st in self.stages.values():
+                if isinstance(st, GraphStages):
+                    st.green = self.green
+            self.prepare_s["green_contexts"] = time.perf_counter() - t1
+
+        if self._graphed():
+            t1 = time.perf_counter()
+            for st in self.stages.values():
+                st.capture_action()
+            self.prepare_s["capture"] = time.perf_counter() - t1
+
+        if isinstance(policy, _PendingTable):
+            if missing:
+                t1 = time.perf_counter()
+                table = profiler.profile(by_arch, self.runner, self.batch_sizes, sm_levels(sm_count(self.device)),
+                                         combos=missing, table=table, repeats=self.cfg.profile_repeats)
+                table.save(policy.path)
+                self.prepare_s["profile"] = time.perf_counter() - t1
+                log.info("SM table profiled in %.1f s, saved to %s", table.profile_s, policy.path)
+            self.table = table
+            policy = TableLevel(table.best_levels())
+        self.sm_policy = policy
+
+        if self._graphed():
+            t1 = time.perf_counter()
+            for st in self.stages.values():
+                keep = {b: policy.levels_for(st.arch, b) for b in self.batch_sizes}
+                st.drop_vlm(keep)
+                for b in self.batch_sizes:
+                    st.capture_vlm(b, keep[b])
+            torch.cuda.synchronize(self.device)
+            self.prepare_s["capture"] = self.prepare_s.get("capture", 0.0) + time.perf_counter() - t1
+
+    def _policy_from_config(self) -> SMPolicy:
+        from services.executor import profiler
+
+        kind = self.cfg.sm_policy
+        if kind == "none":
+            return Unrestricted()
+        if kind == "static":
+            return StaticLevel(self.cfg.static_sms)
+        if not green_contexts_available():
+            log.warning("green contexts unavailable: serving without SM restriction")
+            return Unrestricted()
+        archs = sorted({st.arch for st in self.stages.values()})
+        path, table = profiler.locate_table(self.device, archs, self.cfg.max_batch, self.cfg.sm_table,
+                                            self.cfg.profile_dir)
+        return _PendingTable(path, table)
+
+    # ------------------------------------------------------------------ serving loop
+
+    def submit(self, req: Request) -> None:
+        gen = self._noise_gens.get(req.model)
+        if req.noise is None and gen is not None:
+            io = self.models[req.model].model.io
+            with self._noise_lock:
+                req.noise = torch.randn(io.horizon, io.action_dim, generator=gen).numpy()
+        self.queues.put(req)
+
+    def step(self) -> bool:
+        return self._step(admit=True)
+
+    def _step(self, admit: bool) -> bool:
+        runner = self.runner
+        act = self._pending
+        index = self._index
+        expired: list[Request] = []
+        vlm = None
+        try:
+            runner.begin(index)
+            if admit:
+                model, reqs, expired = self.queues.take(self.cfg.max_batch)
+                if reqs:
+                    vlm = _Batch(model, self.stages[model], reqs, time.monotonic(), index)
+            if act is not None:
+                runner.launch_handoff(act.stages, act.b)
+            # Launching costs host time (a graph of ~1000 kernels takes ~100 us to submit):
+            # issue the stage expected to take longer first, so the lockstep's critical path starts first.
+            vlm_first = vlm is not None and act is not None and \
+                self._expected.get((vlm.stages.arch, "vlm", vlm.b), 0.0) > \
+                self._expected.get((act.stages.arch, "action", act.b), 0.0)
+            if act is not None and not vlm_first:
+                runner.launch_action(act.stages, act.b, index & 1)
+            level = None
+            if vlm is not None:
+                level = self.sm_policy.level(vlm.stages.arch, vlm.b, act.stages.arch if act else None,
+                                             act.b if act else 0)
+                vlm.stages.stage(vlm.b, vlm.requests)
+                runner.launch_vlm(vlm.stages, vlm.b, level,
+                                  after_handoff=act is not None and act.stages is vlm.stages and act.b == vlm.b)
+            if act is not None and vlm_first:
+                runner.launch_action(act.stages, act.b, index & 1)
+            runner.end_launch()
+        except Exception as exc:
+            runner.end_launch()
+            self._pending = None
+            self._fail([b for b in (act, vlm) if b is not None], exc)
+            raise
+        if act is None and vlm is None:
+            # Nothing ran: let the last lockstep's replies out and let the caller idle.
+            self._book()
+            self._report_expired(expired)
+            self._back_to_back = False
+            return bool(expired)
+        launched = time.perf_counter()
+        launch = _Launched(index, time.monotonic(), vlm, act, index & 1, level,
+                           (launched - self._last_end) * 1e6 if self._back_to_back else None, self._back_to_back)
+        self._index += 1
+        if admit:
+            self._prestage()
+        self._book()  # the previous lockstep's replies and telemetry, while this one runs
+        self._report_expired(expired)
+        try:
+            runner.wait()
+        except Exception as exc:
+            self._pending = None
+            self._fail([b for b in (act, vlm) if b is not None], exc)
+            raise
+        self._last_end = time.perf_counter()
+        self._back_to_back = True
+        launch.end = time.monotonic()
+        if vlm is not None:
+            vlm.vlm_end = launch.end
+        self._pending = vlm
+        self._last = launch
+        return True
+
+    def _prestage(self) -> None:
+        model, reqs = self.queues.peek(self.cfg.max_batch)
+        if reqs:
+            self.stages[model].prestage(len(reqs), reqs)
+
+    def _book(self) -> None:
+        done, self._last = self._last, None
+        if done is None:
+            return
+        act = done.act
+        if act is not None:
+            out = act.stages.result(act.b, done.slot).copy()
+            self._emit([Result(r, actions=out[i], admitted=act.admitted, vlm_s=act.vlm_end - act.admitted,
+                               action_s=done.end - act.vlm_end, done=done.end, lockstep=act.lockstep)
+                        for i, r in enumerate(act.requests)])
+        t = self.runner.measure(done.index, done.after_previous)
+        vlm = done.vlm
+        for batch, stage, ms in ((vlm, "vlm", t.vlm_ms), (act, "action", t.action_ms)):
+            if batch is not None:
+                key = (batch.stages.arch, stage, batch.b)
+                self._expected[key] = ms if key not in self._expected else 0.8 * self._expected[key] + 0.2 * ms
+        self.telemetry.add(LockstepRecord(
+            index=done.index, start=done.start,
+            vlm_model=vlm.model if vlm else None, vlm_arch=vlm.stages.arch if vlm else None, vlm_batch=vlm.b if vlm else 0,
+            action_model=act.model if act else None, action_arch=act.stages.arch if act else None,
+            action_batch=act.b if act else 0, sm_level=done.level, duration_ms=t.duration_ms, vlm_ms=t.vlm_ms,
+            action_ms=t.action_ms, cpu_gap_us=done.cpu_gap_us, gpu_gap_us=t.gap_us, gpu_gap_last_us=t.gap_last_us))
+
+    def _emit(self, results: list[Result]) -> None:
+        try:
+            self.on_results(results)
+        except Exception:  # the I/O layer's fault must not stop the GPU loop
+            log.exception("result sink failed")
+
+    def _fail(self, batches: list[_Batch], exc: Exception) -> None:
+        log.error("lockstep %d failed: %r", self._index, exc)
+        self._emit([Result(r, error=(ErrorCode.INTERNAL, f"inference failed: {type(exc).__name__}"))
+                    for b in batches for r in b.requests])
+
+    def finish(self) -> None:
+        """Complete the batch already past its VLM stage, then answer everything still queued."""
+        try:
+            while self._pending is not None:
+                self._step(admit=False)
+        except Exception:
+            log.exception("could not complete the last batch at shutdown")
+        self._book()
+        super().finish()
+        self.telemetry.close()
+
+
+@dataclass
+class _PendingTable:
+    """A table-driven policy before start-up resolved it (the table may still need profiling)."""
+
+    path: Path
+    table: "object"
+
+
+class RobionEngine(LockstepEngine):
+    """``engine.kind: robion``: lockstep engine with the profiled (table-driven) SM restriction."""
+
+
+ENGINES["robion"] = RobionEngine

@@ -1,0 +1,241 @@
+"""Offline profiling of the VLM SM restriction: the lookup table behind guarded dynamic SM
+partitioning.
+
+For every (VLM architecture, VLM batch, action architecture, action batch) that can
+co-occur in a lockstep, the profiler replays that lockstep on the GPU at every SM level
+(multiples of 8 up to the SM count, plus unrestricted) and keeps the fastest. It uses the
+engine's own runner and graphs, so it times exactly what serving will run.
+
+Tables are JSON, keyed by GPU name, torch version, max_batch and the architectures, cached
+in a state directory and reused on later starts. Entries are keyed by ``profile_key``
+(architecture and size), so fine-tuned variants of one architecture share them, and a
+table for a superset of architectures serves any subset.
+
+CLI: ``python -m services.executor.profiler --models pi0:full,smolvla:full --out bench/results/sm_table.json``
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import importlib
+import json
+import logging
+import re
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from services.executor.sm import Level, level_name, parse_level
+
+log = logging.getLogger(__name__)
+
+Combo = tuple[str, int, str, int]  # vlm arch, vlm batch, action arch, action batch
+
+
+@dataclass
+class ProfileEntry:
+    vlm: str
+    vlm_batch: int
+    action: str
+    action_batch: int
+    best_sms: int | None  # None: unrestricted was fastest
+    best_ms: float
+    unrestricted_ms: float
+    times_ms: dict[str, float] = field(default_factory=dict)  # level name -> median lockstep time
+
+    @property
+    def combo(self) -> Combo:
+        return (self.vlm, self.vlm_batch, self.action, self.action_batch)
+
+
+@dataclass
+class SMTable:
+    gpu: str
+    sm_count: int
+    torch: str
+    max_batch: int
+    archs: list[str]
+    entries: list[ProfileEntry] = field(default_factory=list)
+    profile_s: float = 0.0  # wall time of the profiling runs that produced the entries
+    repeats: int = 0
+
+    def best_levels(self) -> dict[Combo, Level]:
+        return {e.combo: e.best_sms for e in self.entries}
+
+    def covers(self, combos: list[Combo]) -> bool:
+        have = {e.combo for e in self.entries}
+        return all(c in have for c in combos)
+
+    def save(self, path: str | Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(dataclasses.asdict(self), indent=1) + "\n")
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SMTable":
+        data = json.loads(Path(path).read_text())
+        data["entries"] = [ProfileEntry(**e) for e in data.get("entries", [])]
+        return cls(**data)
+
+
+def combos_for(archs: list[str], batch_sizes: list[int]) -> list[Combo]:
+    return [(va, vb, aa, ab) for va in archs for vb in batch_sizes for aa in archs for ab in batch_sizes]
+
+
+def missing_combos(table: SMTable, archs: list[str], batch_sizes: list[int]) -> list[Combo]:
+    have = {e.combo for e in table.entries}
+    return [c for c in combos_for(archs, batch_sizes) if c not in have]
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9.+-]+", "_", text).strip("_")
+
+
+def table_path(profile_dir: str | Path, gpu: str, torch_version: str, max_batch: int, archs: list[str]) -> Path:
+    arch_part = "+".join(sorted(archs))
+    if len(arch_part) > 80:
+        arch_part = hashlib.sha1(arch_part.encode()).hexdigest()[:12]
+    return Path(profile_dir) / f"sm-table_{_slug(gpu)}_torch{_slug(torch_version)}_mb{max_batch}_{_slug(arch_part)}.json"
+
+
+def _matches(table: SMTable, gpu: str, torch_version: str) -> bool:
+    return table.gpu == gpu and table.torch == torch_version
+
+
+def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_table: str | None,
+                 profile_dir: str) -> tuple[Path, SMTable]:
+    """The table to use and where to save it: the configured file, the cached one for this
+    key, or a new one seeded with the entries of any cached table from the same GPU and torch."""
+    gpu, version = torch.cuda.get_device_name(device), torch.__version__
+    fresh = SMTable(gpu, torch.cuda.get_device_properties(device).multi_processor_count, version, max_batch,
+                    sorted(archs))
+    batch_sizes = [1 << i for i in range(max_batch.bit_length())]
+    wanted = combos_for(sorted(archs), batch_sizes)
+    if sm_table:
+        path = Path(sm_table)
+        if path.exists():
+            table = SMTable.load(path)
+            if _matches(table, gpu, version):
+                return path, table
+            log.warning("%s was profiled on %s / torch %s, not %s / torch %s: profiling anew into %s",
+                        path, table.gpu, table.torch, gpu, version, profile_dir)
+        else:
+            return path, fresh
+    path = table_path(profile_dir, gpu, version, max_batch, archs)
+    if path.exists():
+        return path, SMTable.load(path)
+    for other in sorted(Path(profile_dir).glob("sm-table_*.json")):
+        try:
+            table = SMTable.load(other)
+        except (ValueError, TypeError, KeyError):
+            log.warning("ignoring unreadable SM table %s", other)
+            continue
+        if _matches(table, gpu, version):
+            fresh.entries += [e for e in table.entries if e.combo in wanted and e.combo not in
+                              {x.combo for x in fresh.entries}]
+    if fresh.entries:
+        log.info("reusing %d cached SM table entries from %s", len(fresh.entries), profile_dir)
+    return path, fresh
+
+
+def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], combos: list[Combo],
+            table: SMTable, repeats: int = 5, warmup: int = 2, progress: bool = True) -> SMTable:
+    """Time every combo at every level with the engine's runner; add the entries to ``table``.
+
+    ``by_arch`` maps an architecture key to one ``GraphStages`` of it (graphs and buffers
+    allocated); VLM graphs for all ``levels`` are captured here as they are needed.
+    """
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    groups: dict[tuple[str, int], list[tuple[str, int]]] = {}
+    for va, vb, aa, ab in combos:
+        groups.setdefault((va, vb), []).append((aa, ab))
+    bar = tqdm(total=len(combos) * len(levels), desc="SM profile", unit="run", disable=not progress)
+    done = {e.combo for e in table.entries}
+    for (va, vb), actions in groups.items():
+        vst = by_arch[va]
+        vst.capture_vlm(vb, set(levels))
+        for aa, ab in actions:
+            ast = by_arch[aa]
+            times: dict[str, float] = {}
+            for level in levels:
+                samples = []
+                for i in range(warmup + repeats):
+                    runner.begin(i)
+                    runner.launch_handoff(ast, ab)
+                    runner.launch_action(ast, ab, 0)
+                    runner.launch_vlm(vst, vb, level, after_handoff=ast is vst and ab == vb)
+                    runner.end_launch()
+                    runner.wait()
+                    if i >= warmup:
+                        samples.append(runner.measure(i, False).duration_ms)
+                times[level_name(level)] = statistics.median(samples)
+                bar.update()
+            best = min(levels, key=lambda lv: times[level_name(lv)])
+            entry = ProfileEntry(va, vb, aa, ab, best, times[level_name(best)], times["none"], times)
+            if entry.combo in done:
+                table.entries = [e for e in table.entries if e.combo != entry.combo]
+            table.entries.append(entry)
+            bar.set_postfix_str(f"{va}x{vb}|{aa}x{ab} best {level_name(best)}")
+    bar.close()
+    table.archs = sorted(set(table.archs) | set(by_arch))
+    table.profile_s += time.perf_counter() - t0
+    table.repeats = repeats
+    return table
+
+
+def format_table(table: SMTable) -> str:
+    lines = [f"SM table: {table.gpu} ({table.sm_count} SMs), torch {table.torch}, max_batch {table.max_batch}, "
+             f"profiled in {table.profile_s:.1f} s",
+             f"{'vlm':>18} {'b':>2} {'action':>18} {'b':>2} {'best SMs':>8} {'best ms':>8} {'unrestr ms':>10} {'gain':>6}"]
+    for e in sorted(table.entries, key=lambda e: e.combo):
+        lines.append(f"{e.vlm:>18} {e.vlm_batch:>2} {e.action:>18} {e.action_batch:>2} {level_name(e.best_sms):>8} "
+                     f"{e.best_ms:>8.3f} {e.unrestricted_ms:>10.3f} {e.unrestricted_ms / e.best_ms:>5.2f}x")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    from services.executor.engine import ServedModel
+    from services.executor.lockstep import LockstepEngine
+    from shared.config import EngineConfig
+    from shared.models import build_model
+
+    ap = argparse.ArgumentParser(description="Profile the VLM SM restriction table for co-located models")
+    ap.add_argument("--models", required=True, help="comma-separated arch:size (e.g. pi0:full,smolvla:full)")
+    ap.add_argument("--max-batch", type=int, default=2)
+    ap.add_argument("--out", required=True, help="table JSON to write (reused when it already covers the models)")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--import", dest="imports", action="append", default=[],
+                    help="module registering extra architectures (e.g. bench.models)")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    for mod in args.imports:
+        importlib.import_module(mod)
+    device = torch.device(args.device)
+    models = {}
+    for spec in args.models.split(","):
+        arch, _, size = spec.partition(":")
+        models[spec] = ServedModel(spec, build_model(arch, size or "full", device=device), 1.0)
+    cfg = EngineConfig(kind="robion", max_batch=args.max_batch, sm_table=args.out, profile_repeats=args.repeats)
+    engine = LockstepEngine(models, cfg, device, lambda results: None)
+    t0 = time.perf_counter()
+    engine.prepare()
+    log.info("start-up with profiling took %.1f s", time.perf_counter() - t0)
+    print(format_table(engine.table))
+    print(f"prepare: {json.dumps({k: round(v, 2) for k, v in engine.prepare_s.items()})}")
+
+
+if __name__ == "__main__":
+    main()
+
+
+__all__ = ["SMTable", "ProfileEntry", "locate_table", "missing_combos", "profile", "parse_level"]

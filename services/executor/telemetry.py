@@ -1,0 +1,114 @@
+"""Per-lockstep telemetry: what ran, at which SM level, how long, and the gap before it.
+
+Records are finalised one lockstep late (when their CUDA events are certainly complete and
+the next lockstep is already running), so keeping telemetry costs the GPU nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import threading
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LockstepRecord:
+    index: int
+    start: float  # time.monotonic() when the lockstep was launched
+    vlm_model: str | None
+    vlm_arch: str | None
+    vlm_batch: int
+    action_model: str | None
+    action_arch: str | None
+    action_batch: int
+    sm_level: int | None  # SMs of the VLM stream; None: unrestricted
+    duration_ms: float  # first stage start to last stage end (device time on the GPU)
+    vlm_ms: float
+    action_ms: float
+    # Host time from observing the previous lockstep's end to having issued this one;
+    # None when the engine idled in between (no back-to-back locksteps).
+    cpu_gap_us: float | None = None
+    # Device idle time between the previous lockstep's last kernel and this one's first
+    # (CUDA events; includes the host's wake-up latency). None on the CPU or after idling.
+    gpu_gap_us: float | None = None
+    # Same, up to the later of the two stages' first kernel (what the second-launched stage loses).
+    gpu_gap_last_us: float | None = None
+
+    @property
+    def overlap_ms(self) -> float:
+        """How much the two stages ran at the same time (0 when one was absent or they serialised)."""
+        if not (self.vlm_batch and self.action_batch):
+            return 0.0
+        return max(0.0, self.vlm_ms + self.action_ms - self.duration_ms)
+
+
+class Telemetry:
+    """A ring buffer of the latest lockstep records, optionally mirrored to a JSONL file."""
+
+    def __init__(self, capacity: int = 4096, path: str | Path | None = None):
+        self._ring: deque[LockstepRecord] = deque(maxlen=capacity)
+        self._lock = threading.Lock()
+        self._file: IO[str] | None = None
+        self.count = 0
+        if path:
+            self.open(path)
+
+    def open(self, path: str | Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = path.open("a", buffering=1)
+
+    def add(self, rec: LockstepRecord) -> None:
+        with self._lock:
+            self._ring.append(rec)
+            self.count += 1
+        if self._file is not None:
+            self._file.write(json.dumps(dataclasses.asdict(rec)) + "\n")
+
+    def records(self) -> list[LockstepRecord]:
+        with self._lock:
+            return list(self._ring)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._ring.clear()
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def summary(self) -> dict:
+        return summarize(self.records())
+
+
+def _pct(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None
+
+
+def summarize(records: list[LockstepRecord]) -> dict:
+    """Gap percentiles over back-to-back locksteps and how often the stages overlapped."""
+    cpu = [r.cpu_gap_us for r in records if r.cpu_gap_us is not None]
+    gpu = [r.gpu_gap_us for r in records if r.gpu_gap_us is not None]
+    gpu_last = [r.gpu_gap_last_us for r in records if r.gpu_gap_last_us is not None]
+    both = [r for r in records if r.vlm_batch and r.action_batch]
+    return {
+        "locksteps": len(records),
+        "co_running": len(both),
+        "overlapping": sum(r.overlap_ms > 0 for r in both),
+        "mean_overlap_ms": float(np.mean([r.overlap_ms for r in both])) if both else None,
+        "mean_duration_ms": float(np.mean([r.duration_ms for r in records])) if records else None,
+        "cpu_gap_us": {"n": len(cpu), "median": _pct(cpu, 50), "p99": _pct(cpu, 99)},
+        "gpu_gap_us": {"n": len(gpu), "median": _pct(gpu, 50), "p99": _pct(gpu, 99)},
+        "gpu_gap_last_us": {"n": len(gpu_last), "median": _pct(gpu_last, 50), "p99": _pct(gpu_last, 99)},
+        "sm_levels": sorted({str(r.sm_level) for r in records if r.vlm_batch}),
+    }

@@ -1,0 +1,219 @@
+"""The lockstep engine on a real GPU: restriction, overlap, correctness (`pytest -m gpu`)."""
+
+import faulthandler
+import statistics
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+pytestmark = pytest.mark.gpu
+
+if not torch.cuda.is_available():  # collected on CPU hosts only to be deselected/skipped
+    pytest.skip("needs a CUDA GPU", allow_module_level=True)
+
+import bench.models  # noqa: E402,F401  (registers heavytoy)
+from services.executor.engine import ServedModel  # noqa: E402
+from services.executor.lockstep import LockstepEngine  # noqa: E402
+from services.executor.scheduler import Request, Result  # noqa: E402
+from services.executor.sm import GreenStreams, StaticLevel, TableLevel, Unrestricted  # noqa: E402
+from shared.config import EngineConfig  # noqa: E402
+from shared.models import build_model  # noqa: E402
+
+DEV = torch.device("cuda:0")
+
+
+@pytest.fixture(autouse=True)
+def watchdog():
+    # A stream or graph mistake hangs instead of failing: dump stacks and exit rather than wait forever.
+    faulthandler.dump_traceback_later(300, exit=True)
+    yield
+    faulthandler.cancel_dump_traceback_later()
+
+
+def _time_graph(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream, n: int = 10) -> float:
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    with torch.cuda.stream(stream):
+        graph.replay()
+        start.record(stream)
+        for _ in range(n):
+            graph.replay()
+        end.record(stream)
+    end.synchronize()
+    return start.elapsed_time(end) / n
+
+
+def test_graph_captured_on_green_stream_runs_restricted():
+    green = GreenStreams(DEV, [16])
+    plain = torch.cuda.Stream(DEV)
+    a = torch.randn(8192, 8192, device=DEV, dtype=torch.bfloat16)
+    graphs = {}
+    for name, stream in (("full", plain), ("16", green.stream(16))):
+        stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(stream):
+            a @ a
+        stream.synchronize()
+        g = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(g, stream=stream):
+            a @ a
+        graphs[name] = g
+    # Both replayed on the same plain stream: the restriction travels with the graph.
+    full, restricted = _time_graph(graphs["full"], plain), _time_graph(graphs["16"], plain)
+    print(f"8192^3 bf16 matmul graph: unrestricted {full:.2f} ms, captured on 16 SMs {restricted:.2f} ms")
+    assert restricted > 3.0 * full
+
+
+def _engine(models: dict, cfg: EngineConfig, policy=None) -> tuple[LockstepEngine, list[Result]]:
+    results: list[Result] = []
+    lock = threading.Lock()
+
+    def sink(rs):
+        with lock:
+            results.extend(rs)
+
+    eng = LockstepEngine({n: ServedModel(n, m, 1.0) for n, m in models.items()}, cfg, DEV, sink, sm_policy=policy)
+    eng.prepare()
+    return eng, results
+
+
+def _lockstep_ms(eng: LockstepEngine, vlm, act, level=None, n: int = 10) -> float:
+    runner = eng.runner
+    times = []
+    for i in range(n + 2):
+        runner.begin(i)
+        if act is not None:
+            runner.launch_handoff(act[0], act[1])
+            runner.launch_action(act[0], act[1], 0)
+        if vlm is not None:
+            runner.launch_vlm(vlm[0], vlm[1], level, after_handoff=False)
+        runner.end_launch()
+        runner.wait()
+        if i >= 2:
+            times.append(runner.measure(i, False).duration_ms)
+    return statistics.median(times)
+
+
+def test_concurrent_stages_overlap():
+    model = build_model("heavytoy", "full", device=DEV)
+    eng, _ = _engine({"h": model}, EngineConfig(kind="robion", max_batch=2), StaticLevel(96))
+    st = eng.stages["h"]
+    st.capture_vlm(2, {None, 96})
+    vlm_solo = _lockstep_ms(eng, (st, 2), None)
+    act_solo = _lockstep_ms(eng, None, (st, 2))
+    both = _lockstep_ms(eng, (st, 2), (st, 2))
+    both96 = _lockstep_ms(eng, (st, 2), (st, 2), level=96)
+    print(f"batch 2: VLM {vlm_solo:.2f} ms, action {act_solo:.2f} ms, serial {vlm_solo + act_solo:.2f} ms, "
+          f"lockstep unrestricted {both:.2f} ms, VLM on 96 SMs {both96:.2f} ms")
+    assert min(both, both96) < 0.95 * (vlm_solo + act_solo)
+
+
+def _requests(model, name: str, n: int, seed: int) -> list[Request]:
+    rng = np.random.default_rng(seed)
+    io = model.io
+    now = time.monotonic()
+    return [Request(id=f"{name}-{i}", robot="r", model=name,
+                    images=rng.integers(0, 256, (len(io.cameras), *io.image_shape), dtype=np.uint8),
+                    state=rng.standard_normal(io.state_dim).astype(np.float32),
+                    tokens=rng.integers(1, 200, io.prompt_len).astype(np.int64), arrival=now, deadline=now + 600,
+                    noise=rng.standard_normal((io.horizon, io.action_dim)).astype(np.float32)) for i in range(n)]
+
+
+def _eager(model, r: Request) -> np.ndarray:
+    with torch.inference_mode():
+        h = model.vlm_stage(torch.from_numpy(r.images)[None].to(DEV), torch.from_numpy(r.state)[None].to(DEV),
+                            torch.from_numpy(r.tokens)[None].to(DEV))
+        return model.action_stage(h, torch.from_numpy(r.noise)[None].to(DEV))[0].float().cpu().numpy()
+
+
+def _serve(eng: LockstepEngine, reqs: list[Request], results: list[Result]) -> None:
+    stop = threading.Event()
+    t = threading.Thread(target=eng.run, args=(stop,))
+    t.start()
+    for i, r in enumerate(reqs):
+        eng.submit(r)
+        if i % 5 == 4:
+            time.sleep(0.003)  # arrivals spread over locksteps, so batch sizes vary
+    deadline = time.monotonic() + 120
+    while len(results) < len(reqs) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    stop.set()
+    t.join(60)
+    assert not t.is_alive()
+
+
+def _check(models: dict, results: list[Result], n: int) -> float:
+    assert len(results) == n and len({r.request.id for r in results}) == n
+    worst = 0.0
+    for res in results:
+        assert res.error is None, res.error
+        ref = _eager(models[res.request.model], res.request)
+        rel = float(np.linalg.norm(res.actions - ref) / np.linalg.norm(ref))
+        worst = max(worst, rel)
+    assert worst < 3e-2, worst  # bf16 through 10 Euler steps, batched vs single
+    # The comparison must be able to fail: another request's observation (same noise) differs by more.
+    a, b = results[0].request, next(r.request for r in results if r.request.model == results[0].request.model
+                                    and r.request.id != results[0].request.id)
+    swapped = Request(**{**a.__dict__, "images": b.images, "state": b.state, "tokens": b.tokens})
+    ref, other = _eager(models[a.model], a), _eager(models[a.model], swapped)
+    sensitivity = float(np.linalg.norm(ref - other) / np.linalg.norm(ref))
+    print(f"worst relative error {worst:.2e}; another observation moves the actions by {sensitivity:.2e}")
+    assert sensitivity > 10 * max(worst, 1e-4)
+    return worst
+
+
+@pytest.mark.parametrize("policy", ["table", "none"])
+def test_lockstep_results_equal_eager_single_and_co_located(policy):
+    h1 = build_model("heavytoy", "full", seed=1, device=DEV)
+    h2 = build_model("heavytoy", "full", seed=2, device=DEV)  # a fine-tuned variant: same table entries
+    toy = build_model("toy", "full", seed=3, device=DEV)
+    models = {"h1": h1, "h2": h2, "toy": toy}
+    if policy == "table":  # a hand-made table: restricted levels on some pairs, without minutes of profiling
+        sm = TableLevel({("heavytoy:full", 2, "heavytoy:full", 2): 96, ("heavytoy:full", 1, "heavytoy:full", 2): 64,
+                         ("heavytoy:full", 2, "toy:full", 1): 112, ("toy:full", 1, "heavytoy:full", 1): 32})
+    else:
+        sm = Unrestricted()
+    eng, results = _engine(models, EngineConfig(kind="robion", max_batch=2), sm)
+    reqs = _requests(h1, "h1", 12, 0) + _requests(h2, "h2", 12, 1) + _requests(toy, "toy", 12, 2)
+    order = np.random.default_rng(3).permutation(len(reqs))
+    _serve(eng, [reqs[i] for i in order], results)
+    worst = _check(models, results, len(reqs))
+    summary = eng.telemetry.summary()
+    print(f"policy {policy}: worst relative error {worst:.2e}; telemetry {summary}")
+    assert summary["overlapping"] > 0
+    if policy == "table":
+        assert set(summary["sm_levels"]) - {"None"}, "some lockstep should have run restricted"
+
+
+def test_each_model_alone_equals_eager():
+    h = build_model("heavytoy", "full", seed=5, device=DEV)
+    eng, results = _engine({"h": h}, EngineConfig(kind="robion", max_batch=2), StaticLevel(88))
+    reqs = _requests(h, "h", 16, 4)
+    _serve(eng, reqs, results)
+    _check({"h": h}, results, len(reqs))
+    assert eng.telemetry.summary()["overlapping"] > 0
+
+
+def test_disjoint_split_gives_two_partitions():
+    from services.executor.sm import split_disjoint
+
+    part = split_disjoint(DEV, 64)
+    assert part.vlm_sms == 64 and part.action_sms == torch.cuda.get_device_properties(DEV).multi_processor_count - 64
+    a = torch.randn(8192, 8192, device=DEV, dtype=torch.bfloat16)
+    times = {}
+    for name, stream in (("full", torch.cuda.Stream(DEV)), ("vlm", part.vlm_stream), ("action", part.action_stream)):
+        stream.wait_stream(torch.cuda.current_stream())
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        with torch.cuda.stream(stream):
+            a @ a
+            start.record(stream)
+            for _ in range(5):
+                a @ a
+            end.record(stream)
+        end.synchronize()
+        times[name] = start.elapsed_time(end) / 5
+    print(f"disjoint split: all SMs {times['full']:.2f} ms, {part.vlm_sms} SMs {times['vlm']:.2f} ms, "
+          f"{part.action_sms} SMs {times['action']:.2f} ms")
+    # About half the SMs each: both clearly slower than the whole device.
+    assert times["vlm"] > 1.5 * times["full"] and times["action"] > 1.4 * times["full"]

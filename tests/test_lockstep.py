@@ -1,0 +1,359 @@
+"""The lockstep engine's logic on the CPU: no streams, graphs or green contexts, same loop."""
+
+import json
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from services.executor.engine import ServedModel, make_engine
+from services.executor.lockstep import HostRunner, LockstepEngine, RobionEngine, batch_sizes
+from services.executor.profiler import SMTable, combos_for, missing_combos, profile
+from services.executor.scheduler import Request, Result
+from services.executor.sm import StaticLevel, TableLevel, sm_levels
+from services.executor.stages import BufferedStages, profile_key
+from shared.config import ConfigError, EngineConfig, config_from_dict
+from shared.models import build_model
+from shared.protocol import ErrorCode
+
+CPU = torch.device("cpu")
+
+
+def make_req(model, rid: str, rng: np.random.Generator, deadline_s: float = 60.0, fixed_noise: bool = True) -> Request:
+    io = model.io
+    now = time.monotonic()
+    return Request(id=rid, robot="r", model="", images=rng.integers(0, 256, (len(io.cameras), *io.image_shape), dtype=np.uint8),
+                   state=rng.standard_normal(io.state_dim).astype(np.float32),
+                   tokens=rng.integers(1, 200, io.prompt_len).astype(np.int64), arrival=now, deadline=now + deadline_s,
+                   noise=rng.standard_normal((io.horizon, io.action_dim)).astype(np.float32) if fixed_noise else None)
+
+
+def eager(model, r: Request, noise: np.ndarray | None = None) -> np.ndarray:
+    with torch.inference_mode():
+        h = model.vlm_stage(torch.from_numpy(r.images)[None], torch.from_numpy(r.state)[None], torch.from_numpy(r.tokens)[None])
+        n = torch.from_numpy(r.noise if noise is None else noise)[None]
+        return model.action_stage(h, n)[0].numpy()
+
+
+class Collector:
+    def __init__(self):
+        self.results: list[Result] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, rs: list[Result]) -> None:
+        with self.lock:
+            self.results.extend(rs)
+
+    def ids(self) -> list[str]:
+        return sorted(r.request.id for r in self.results)
+
+
+def engine_for(models: dict, max_batch: int = 2, policy: str = "esf", sink=None, **kw) -> tuple[LockstepEngine, Collector]:
+    sink = sink or Collector()
+    served = {name: ServedModel(name, m, slo) for name, (m, slo) in models.items()}
+    eng = LockstepEngine(served, EngineConfig(kind="robion", max_batch=max_batch, policy=policy, **kw), CPU, sink)
+    eng.prepare()
+    return eng, sink
+
+
+def drive(eng: LockstepEngine, max_steps: int = 1000) -> None:
+    """Step until nothing is queued or in flight (the engine thread's loop, inline)."""
+    for _ in range(max_steps):
+        if not eng.step() and eng._pending is None and eng._last is None:
+            return
+    raise AssertionError("engine did not drain")
+
+
+def test_results_equal_eager_over_mixed_batch_sizes():
+    model = build_model("toy", seed=1)
+    eng, sink = engine_for({"toy": (model, 1.0)}, max_batch=4)
+    rng = np.random.default_rng(0)
+    reqs = [make_req(model, str(i), rng) for i in range(7)]  # batches 4, 2, 1
+    for r in reqs:
+        r.model = "toy"
+        eng.submit(r)
+    drive(eng)
+    assert sink.ids() == sorted(r.id for r in reqs)
+    for res in sink.results:
+        assert res.error is None and res.actions.dtype == np.float32
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
+    assert [rec.vlm_batch for rec in eng.telemetry.records()] == [4, 2, 1, 0]
+
+
+def test_drawn_noise_is_seeded_per_request():
+    model = build_model("toy", seed=2)
+    outs = []
+    for _ in range(2):
+        eng, sink = engine_for({"toy": (model, 1.0)}, seed=7)
+        rng = np.random.default_rng(1)
+        for i in range(3):
+            r = make_req(model, str(i), rng, fixed_noise=False)
+            r.model = "toy"
+            eng.submit(r)
+        drive(eng)
+        outs.append({res.request.id: res.actions for res in sink.results})
+    gen = torch.Generator().manual_seed(7)  # the engine draws in admission order: 0, 1 (batch of 2), 2
+    for rid in ["0", "1", "2"]:
+        noise = torch.randn(model.io.horizon, model.io.action_dim, generator=gen).numpy()
+        np.testing.assert_array_equal(outs[0][rid], outs[1][rid])
+        req = next(res.request for res in sink.results if res.request.id == rid)
+        np.testing.assert_allclose(outs[0][rid], eager(model, req, noise), rtol=1e-4, atol=1e-5)
+
+
+def test_batch_k_vlm_runs_beside_batch_k_minus_1_action():
+    model = build_model("toy", seed=1)
+    eng, sink = engine_for({"toy": (model, 1.0)}, max_batch=2)
+    rng = np.random.default_rng(0)
+    for i in range(5):  # batches 2, 2, 1
+        r = make_req(model, str(i), rng)
+        r.model = "toy"
+        eng.submit(r)
+    drive(eng)
+    recs = eng.telemetry.records()
+    assert [(r.vlm_batch, r.action_batch) for r in recs] == [(2, 0), (2, 2), (1, 2), (0, 1)]
+    assert [r.index for r in recs] == list(range(4))
+    # Each reply comes from the batch whose VLM ran one lockstep before its action.
+    by_lockstep: dict[int, list[str]] = {}
+    for res in sink.results:
+        by_lockstep.setdefault(res.lockstep, []).append(res.request.id)
+    assert {k: sorted(v) for k, v in by_lockstep.items()} == {0: ["0", "1"], 1: ["2", "3"], 2: ["4"]}
+    assert all(r.cpu_gap_us is not None for r in recs[1:]) and recs[0].cpu_gap_us is None
+
+
+class ArrivalDuringStage(torch.nn.Module):
+    """Wraps a model so that a request arrives while the VLM stage of a chosen call runs."""
+
+    def __init__(self, model, on_call):
+        super().__init__()
+        self.inner = model
+        self.io = model.io
+        self.arch = model.arch
+        self.on_call = on_call
+        self.calls = 0
+
+    def vlm_stage(self, images, state, tokens):
+        self.calls += 1
+        self.on_call(self.calls)
+        return self.inner.vlm_stage(images, state, tokens)
+
+    def action_stage(self, handoff, noise):
+        return self.inner.action_stage(handoff, noise)
+
+    def example_inputs(self, *a, **k):
+        return self.inner.example_inputs(*a, **k)
+
+    def noise(self, *a, **k):
+        return self.inner.noise(*a, **k)
+
+
+def test_requests_are_admitted_only_at_lockstep_starts():
+    model = build_model("toy", seed=1)
+    rng = np.random.default_rng(3)
+    late = make_req(model, "late", rng)
+    late.model = "toy"
+    box = {}
+
+    def on_call(n):  # call 1+ are allocation passes; serving starts after prepare
+        if box.get("serving") and "sent" not in box:
+            box["sent"] = box["eng"]._index - 1  # the lockstep whose VLM is running now
+            box["eng"].submit(late)
+
+    wrapped = ArrivalDuringStage(model, on_call)
+    eng, sink = engine_for({"toy": (wrapped, 1.0)}, max_batch=2)
+    box["eng"] = eng
+    box["serving"] = True
+    first = make_req(model, "first", rng)
+    first.model = "toy"
+    eng.submit(first)
+    drive(eng)
+    res = {r.request.id: r for r in sink.results}
+    assert box["sent"] == 0 and res["first"].lockstep == 0
+    assert res["late"].lockstep == 1  # not squeezed into the running batch, admitted at the next start
+    np.testing.assert_allclose(res["late"].actions, eager(model, late), rtol=1e-4, atol=1e-5)
+
+
+def test_multi_model_earliest_slo_first_and_shared_streams():
+    a, b = build_model("toy", seed=1), build_model("toy", seed=2)
+    eng, sink = engine_for({"a": (a, 1.0), "b": (b, 1.0)}, max_batch=1)
+    rng = np.random.default_rng(4)
+    plan = [("a", "a1", 10.0), ("b", "b1", 5.0), ("a", "a2", 11.0), ("b", "b2", 20.0), ("a", "a3", 12.0)]
+    reqs = {}
+    for model_name, rid, deadline in plan:
+        r = make_req(a, rid, rng, deadline_s=deadline)
+        r.model = model_name
+        reqs[rid] = r
+        eng.submit(r)
+    drive(eng)
+    order = [r.request.id for r in sorted(sink.results, key=lambda r: r.lockstep)]
+    assert order == ["b1", "a1", "a2", "a3", "b2"]
+    for res in sink.results:
+        m = a if res.request.model == "a" else b
+        np.testing.assert_allclose(res.actions, eager(m, res.request), rtol=1e-4, atol=1e-5)
+    recs = eng.telemetry.records()
+    # One VLM and one action stage per lockstep, possibly of different models.
+    assert any(r.vlm_model != r.action_model and r.vlm_batch and r.action_batch for r in recs)
+    # Fine-tuned variants share one architecture key (for the SM table).
+    assert recs[1].vlm_arch == recs[1].action_arch == "toy:tiny"
+
+
+def test_fine_tuned_variants_share_profile_key():
+    assert profile_key(build_model("toy", seed=1)) == profile_key(build_model("toy", seed=9)) == "toy:tiny"
+    assert profile_key(build_model("toy", "full")) == "toy:full"
+
+
+def test_threaded_serving_loses_nothing_and_shutdown_answers_everything():
+    model = build_model("toy", seed=1)
+    sink = Collector()
+    eng, _ = engine_for({"toy": (model, 1.0)}, max_batch=2, sink=sink)
+    stop = threading.Event()
+    t = threading.Thread(target=eng.run, args=(stop,))
+    t.start()
+    rng = np.random.default_rng(5)
+    reqs = []
+    for i in range(40):
+        r = make_req(model, str(i), rng)
+        r.model = "toy"
+        reqs.append(r)
+        eng.submit(r)
+        if i % 7 == 0:
+            time.sleep(0.002)
+    stop.set()  # stop while work is queued and in flight
+    t.join(30)
+    assert not t.is_alive()
+    assert sink.ids() == sorted(r.id for r in reqs)  # every request answered exactly once
+    served = [r for r in sink.results if r.error is None]
+    refused = [r for r in sink.results if r.error is not None]
+    assert served, "some requests should have run before the stop"
+    assert all(r.error[0] == ErrorCode.UNAVAILABLE for r in refused)
+    for res in served:
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
+
+
+def test_expired_requests_are_shed_not_run():
+    model = build_model("toy", seed=1)
+    eng, sink = engine_for({"toy": (model, 1.0)})
+    rng = np.random.default_rng(6)
+    r = make_req(model, "old", rng, deadline_s=-1.0)
+    r.model = "toy"
+    eng.submit(r)
+    drive(eng)
+    assert [x.error[0] for x in sink.results] == [ErrorCode.DEADLINE_EXCEEDED]
+    assert eng.telemetry.records() == []
+
+
+def test_sm_policy_levels_follow_the_table_and_solo_vlm_is_unrestricted():
+    model = build_model("toy", seed=1)
+    table = TableLevel({("toy:tiny", 2, "toy:tiny", 2): 96, ("toy:tiny", 1, "toy:tiny", 2): 64})
+    sink = Collector()
+    eng = LockstepEngine({"toy": ServedModel("toy", model, 1.0)}, EngineConfig(kind="robion"), CPU, sink, sm_policy=table)
+    eng.prepare()
+    rng = np.random.default_rng(7)
+    for i in range(5):
+        r = make_req(model, str(i), rng)
+        r.model = "toy"
+        eng.submit(r)
+    drive(eng)
+    assert [(r.vlm_batch, r.action_batch, r.sm_level) for r in eng.telemetry.records()] == \
+        [(2, 0, None), (2, 2, 96), (1, 2, 64), (0, 1, None)]
+    assert table.levels_for("toy:tiny", 2) == {None, 96} and StaticLevel(32).level("x", 1, None, 0) == 32
+
+
+def test_telemetry_file_and_make_engine_selects_robion(tmp_path):
+    model = build_model("toy", seed=1)
+    path = tmp_path / "tele" / "locksteps.jsonl"
+    sink = Collector()
+    eng = make_engine({"toy": ServedModel("toy", model, 1.0)},
+                      EngineConfig(kind="robion", telemetry_file=str(path)), CPU, sink)
+    assert isinstance(eng, RobionEngine)
+    eng.prepare()
+    rng = np.random.default_rng(8)
+    for i in range(3):
+        r = make_req(model, str(i), rng)
+        r.model = "toy"
+        eng.submit(r)
+    drive(eng)
+    eng.finish()
+    lines = [json.loads(x) for x in path.read_text().splitlines()]
+    assert [x["vlm_batch"] for x in lines] == [2, 1, 0]
+    s = eng.telemetry.summary()
+    assert s["locksteps"] == 3 and s["co_running"] == 1 and s["cpu_gap_us"]["n"] == 2
+
+
+def test_profiler_flow_and_table_round_trip(tmp_path):
+    model = build_model("toy", seed=1)
+    st = BufferedStages(model, CPU, [1, 2])
+    st.allocate()
+    table = SMTable("cpu", 132, torch.__version__, 2, [])
+    combos = combos_for([st.arch], [1, 2])
+    assert missing_combos(table, [st.arch], [1, 2]) == combos
+    levels = [64, None]
+    table = profile({st.arch: st}, HostRunner(), [1, 2], levels, combos, table, repeats=2, warmup=1, progress=False)
+    assert table.covers(combos) and missing_combos(table, [st.arch], [1, 2]) == []
+    assert all(set(e.times_ms) == {"64", "none"} for e in table.entries)
+    table.save(tmp_path / "t.json")
+    again = SMTable.load(tmp_path / "t.json")
+    assert again.best_levels() == table.best_levels() and again.profile_s > 0
+
+
+def test_helpers_and_config_validation():
+    assert batch_sizes(1) == [1] and batch_sizes(2) == [1, 2] and batch_sizes(8) == [1, 2, 4, 8]
+    assert sm_levels(132) == list(range(8, 132, 8)) + [None] and sm_levels(132)[-2] == 128
+    base = {"models": [{"name": "m", "arch": "toy"}], "executors": [{"name": "e", "models": ["m"]}]}
+    cfg = config_from_dict({**base, "engine": {"kind": "robion", "sm_policy": "static", "static_sms": 96}})
+    assert cfg.engine.static_sms == 96
+    with pytest.raises(ConfigError, match="static_sms"):
+        config_from_dict({**base, "engine": {"kind": "robion", "sm_policy": "static", "static_sms": 20}})
+    with pytest.raises(ConfigError, match="sm_policy"):
+        config_from_dict({**base, "engine": {"sm_policy": "sometimes"}})
+
+
+def test_multi_tensor_handoff_model_equals_eager():
+    import bench.models  # noqa: F401  (registers heavytoy)
+
+    model = build_model("heavytoy", "small", seed=3)
+    eng, sink = engine_for({"h": (model, 1.0)}, max_batch=2)
+    rng = np.random.default_rng(9)
+    for i in range(3):
+        r = make_req(model, str(i), rng)
+        r.model = "h"
+        eng.submit(r)
+    drive(eng)
+    assert sink.ids() == ["0", "1", "2"]
+    for res in sink.results:
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
+
+
+def test_prestaged_and_mispredicted_batches_stage_the_right_observations():
+    model = build_model("toy", seed=1)
+    st = BufferedStages(model, CPU, [1, 2])
+    st.allocate()
+    rng = np.random.default_rng(10)
+    a = [make_req(model, f"a{i}", rng) for i in range(2)]
+    b = [make_req(model, f"b{i}", rng) for i in range(2)]
+    for predicted, admitted in ((a, a), (a, b), (b, [b[1], b[0]])):
+        st.prestage(2, predicted)
+        st.stage(2, admitted)
+        st.upload(2)
+        staged = st.dev_in[2].views
+        for i, r in enumerate(admitted):
+            np.testing.assert_array_equal(staged["images"][i].numpy(), r.images)
+            np.testing.assert_array_equal(staged["__noise__"][i].numpy(), r.noise)
+
+
+def test_peek_matches_take_without_side_effects():
+    from services.executor.scheduler import ModelQueues
+
+    q = ModelQueues(["a", "b"], policy="rr", shed_expired=False)
+    rng = np.random.default_rng(11)
+    model = build_model("toy")
+    for name in ("a", "b", "a"):
+        r = make_req(model, name, rng)
+        r.model = name
+        q.put(r)
+    for _ in range(3):
+        peeked = q.peek(2)
+        assert q.peek(2) == peeked  # peeking twice does not advance round-robin
+        model_name, batch, _ = q.take(2)
+        assert (model_name, batch) == peeked
