@@ -108,18 +108,53 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
-    from shared.cluster import control_status
+    from shared.cluster import control_request, control_status
 
     cfg = _load(args.config)
+    address = dial_address(cfg.control.bind, cfg.control.connect)
     if args.action == "status":
-        status = control_status(dial_address(cfg.control.bind, cfg.control.connect), timeout_s=2.0)
+        status = control_status(address, timeout_s=2.0)
         if status is None:
-            print(f"control plane at {cfg.control.bind} does not answer", file=sys.stderr)
+            print(f"control plane at {address} does not answer", file=sys.stderr)
             return 1
         print(json.dumps(status, indent=2))
         return 0
-    print(f"unknown ctl action {args.action!r}", file=sys.stderr)
-    return 2
+    if not args.target:
+        print(f"robion ctl {args.action}: needs {'a config file' if args.action == 'apply' else 'an executor name'}",
+              file=sys.stderr)
+        return 2
+    if args.action == "apply":
+        try:
+            text = Path(args.target).read_text()
+        except OSError as exc:
+            print(f"robion ctl apply: cannot read {args.target}: {exc.strerror}", file=sys.stderr)
+            return 2
+        reply = control_request(address, "apply", timeout_s=30.0, config=text)
+    else:
+        reply = control_request(address, args.action, timeout_s=5.0, executor=args.target)
+    if reply is None:
+        print(f"control plane at {address} does not answer", file=sys.stderr)
+        return 1
+    if reply.get("kind") == "error":
+        print(f"robion ctl {args.action}: {reply.get('message')}", file=sys.stderr)
+        return 1
+    if args.action != "apply":
+        print(f"{args.action} {args.target}: routing table v{reply.get('version')}")
+        return 0
+    print(f"applied: routing table v{reply['version']}; executors to reload in turn: {reply['steps'] or 'none'}")
+    if not args.wait:
+        return 0
+    end = time.monotonic() + args.timeout
+    while time.monotonic() < end:
+        status = control_status(address, timeout_s=2.0)
+        rollout = (status or {}).get("rollout") or {}
+        if status and not rollout.get("pending"):
+            print(f"placement change done: reloaded {rollout.get('done', [])}"
+                  + (f", FAILED {rollout['failed']}" if rollout.get("failed") else ""))
+            return 1 if rollout.get("failed") else 0
+        time.sleep(0.2)
+    print(f"placement change still running after {args.timeout:.0f} s", file=sys.stderr)
+    return 1
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -153,8 +188,12 @@ def main(argv: list[str] | None = None) -> int:
     bench.set_defaults(fn=cmd_bench)
 
     ctl = sub.add_parser("ctl", help="talk to a running cluster's control plane")
-    ctl.add_argument("action", choices=["status"])
-    ctl.add_argument("-c", "--config", required=True)
+    ctl.add_argument("action", choices=["status", "apply", "drain", "resume"],
+                     help="status; apply FILE (new placement/populations); drain/resume EXECUTOR")
+    ctl.add_argument("target", nargs="?", help="config file for apply, executor name for drain/resume")
+    ctl.add_argument("-c", "--config", required=True, help="the running cluster's config (control-plane address)")
+    ctl.add_argument("--no-wait", dest="wait", action="store_false", help="apply: return once accepted")
+    ctl.add_argument("--timeout", type=float, default=600.0)
     ctl.set_defaults(fn=cmd_ctl)
 
     args = p.parse_args(argv)

@@ -18,19 +18,26 @@ from shared.config import ClusterConfig, dial_address
 log = logging.getLogger("robion.cluster")
 
 
-def control_status(address: str, timeout_s: float = 1.0, context: zmq.Context | None = None) -> dict | None:
-    """Ask the control plane for its status; None when it does not answer in time."""
+def control_request(address: str, kind: str, timeout_s: float = 1.0, context: zmq.Context | None = None,
+                    **fields) -> dict | None:
+    """One request to the control plane's admin API; None when it does not answer in time."""
     ctx = context or zmq.Context.instance()
     sock = ctx.socket(zmq.DEALER)
     sock.setsockopt(zmq.LINGER, 0)
     try:
         sock.connect(address)
-        sock.send(control.pack("status"))
+        sock.send(control.pack(kind, **fields))
         if not sock.poll(int(timeout_s * 1000)):
             return None
-        return control.unpack(sock.recv()).get("status")
+        return control.unpack(sock.recv())
     finally:
         sock.close()
+
+
+def control_status(address: str, timeout_s: float = 1.0, context: zmq.Context | None = None) -> dict | None:
+    """Ask the control plane for its status; None when it does not answer in time."""
+    reply = control_request(address, "status", timeout_s, context)
+    return reply.get("status") if reply else None
 
 
 class LocalCluster:

@@ -33,15 +33,18 @@ class RoutingTable:
     # The traffic controller's solution: robots of a model each executor takes (empty: round-robin per request).
     quotas: dict[str, dict[str, int]] = field(default_factory=dict)
     limits: dict[str, int] = field(default_factory=dict)  # model -> robots one GPU sustains (C_i)
+    executors: list[str] = field(default_factory=list)  # every registered executor, draining ones included
 
     def to_wire(self) -> dict[str, Any]:
         return {"version": self.version, "models": {n: i.to_wire() for n, i in self.models.items()},
                 "routes": {m: list(e) for m, e in self.routes.items()},
-                "quotas": {m: dict(q) for m, q in self.quotas.items()}, "limits": dict(self.limits)}
+                "quotas": {m: dict(q) for m, q in self.quotas.items()}, "limits": dict(self.limits),
+                "executors": list(self.executors)}
 
     @classmethod
     def from_wire(cls, d: dict[str, Any]) -> "RoutingTable":
         return cls(version=int(d["version"]), models={n: ModelInfo.from_wire(i) for n, i in d["models"].items()},
                    routes={m: [str(x) for x in e] for m, e in d["routes"].items()},
                    quotas={m: {str(e): int(n) for e, n in q.items()} for m, q in d.get("quotas", {}).items()},
-                   limits={m: int(c) for m, c in d.get("limits", {}).items()})
+                   limits={m: int(c) for m, c in d.get("limits", {}).items()},
+                   executors=[str(e) for e in d.get("executors", [])])

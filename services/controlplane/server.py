@@ -5,12 +5,15 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import asdict
 
+import yaml
 import zmq
 
+from services.controlplane.rollout import Rollout, plan_steps
 from services.controlplane.state import ClusterState
 from shared import control
-from shared.config import ClusterConfig
+from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_dict
 from shared.metrics import ControlMetrics, serve
 from shared.protocol import ModelInfo, ProtocolError
 
@@ -29,6 +32,7 @@ class ControlPlane:
         serve(self.metrics.registry, cfg.control.metrics_port)
         self._published: set[str] = set()
         self._assigned: set[tuple[str, str]] = set()
+        self.rollout: Rollout | None = None
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
@@ -44,6 +48,8 @@ class ControlPlane:
                         log.exception("bad control message")
             for name in self.state.expire():
                 log.warning("executor %s missed its heartbeats: removed from routing", name)
+            if self.rollout is not None:
+                self.rollout.tick(self.state, self._send_load)
             self._update_metrics()
         self.sock.close(linger=0)
 
@@ -65,6 +71,35 @@ class ControlPlane:
         self._assigned = published
         self.metrics.table_version.set(self.state.table.version)
 
+    def _send_load(self, executor: str, models: list[ModelConfig]) -> None:
+        self.sock.send_multipart([executor.encode(), control.pack("load", models=[asdict(m) for m in models])])
+
+    def _reply(self, peer: bytes, kind: str, **fields) -> None:
+        self.sock.send_multipart([peer, control.pack(kind, **fields)])
+
+    def _admin(self, peer: bytes, kind: str, msg: dict) -> None:
+        st = self.state
+        if kind == "apply":
+            if self.rollout is not None and not self.rollout.finished:
+                return self._reply(peer, "error", message=f"a placement change is in progress: {self.rollout.status()}")
+            try:
+                new = config_from_dict(yaml.safe_load(str(msg.get("config", ""))))
+            except ConfigError as exc:
+                return self._reply(peer, "error", message=f"config error: {exc}")
+            except yaml.YAMLError:
+                return self._reply(peer, "error", message="config error: not valid YAML")
+            steps = plan_steps(st.cfg, new, st)
+            st.replace_config(new)
+            self.rollout = Rollout(steps)
+            log.info("apply: new desired state, table v%d; executors to reload: %s", st.table.version,
+                     [s.executor for s in steps])
+            return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version)
+        name = str(msg.get("executor", ""))
+        if not st.set_draining(name, kind == "drain"):
+            return self._reply(peer, "error", message=f"no executor named {name!r} is registered")
+        log.info("%s %s (table v%d)", "drained" if kind == "drain" else "resumed", name, st.table.version)
+        self._reply(peer, "ok", version=st.table.version)
+
     def _handle(self, frames: list[bytes]) -> None:
         peer, body = frames[0], frames[-1]
         try:
@@ -79,6 +114,8 @@ class ControlPlane:
             st.register(str(msg["executor"]), str(msg.get("device", "")), models)
             log.info("executor %s registered on %s with %s (table v%d)", msg["executor"], msg.get("device"),
                      sorted(models), st.table.version)
+            if self.rollout is not None:
+                self.rollout.on_register(st, str(msg["executor"]), list(models))
             self.sock.send_multipart([peer, control.pack("registered", version=st.table.version)])
         elif kind == "heartbeat":
             known = st.heartbeat(str(msg["executor"]), dict(msg.get("depths", {})))
@@ -94,6 +131,10 @@ class ControlPlane:
             newer = msg.get("version") != st.table.version
             self.sock.send_multipart([peer, control.pack("table", table=st.table.to_wire() if newer else None)])
         elif kind == "status":
-            self.sock.send_multipart([peer, control.pack("status", status=st.status())])
+            status = st.status()
+            status["rollout"] = self.rollout.status() if self.rollout is not None else None
+            self.sock.send_multipart([peer, control.pack("status", status=status)])
+        elif kind in ("apply", "drain", "resume"):
+            self._admin(peer, kind, msg)
         else:
             self.sock.send_multipart([peer, control.pack("error", message=f"unknown kind {kind!r}")])

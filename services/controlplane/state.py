@@ -18,6 +18,7 @@ class ExecutorState:
     models: dict[str, ModelInfo]
     last_seen: float
     depths: dict[str, int] = field(default_factory=dict)
+    draining: bool = False  # registered and serving what it holds, but routed nothing new
 
 
 class ClusterState:
@@ -36,8 +37,23 @@ class ClusterState:
         return self.cfg.control.heartbeat_s * self.cfg.control.missed_heartbeats
 
     def register(self, name: str, device: str, models: dict[str, ModelInfo], now: float | None = None) -> None:
-        self.executors[name] = ExecutorState(name, device, models, now or time.monotonic())
+        old = self.executors.get(name)
+        self.executors[name] = ExecutorState(name, device, models, now or time.monotonic(),
+                                             draining=old.draining if old else False)
         self._rebuild()
+
+    def set_draining(self, name: str, draining: bool) -> bool:
+        ex = self.executors.get(name)
+        if ex is None:
+            return False
+        ex.draining = draining
+        self._rebuild()
+        return True
+
+    def replace_config(self, cfg: ClusterConfig) -> None:
+        """New desired state (placement, populations, limits): re-solve even if the routes stay."""
+        self.cfg = cfg
+        self._rebuild(force=True)
 
     def heartbeat(self, name: str, depths: dict[str, int], now: float | None = None) -> bool:
         """False when the executor is unknown (it must register again, e.g. after a control-plane restart)."""
@@ -61,22 +77,24 @@ class ClusterState:
             self._rebuild()
         return gone
 
-    def _rebuild(self) -> None:
+    def _rebuild(self, force: bool = False) -> None:
         models: dict[str, ModelInfo] = {}
         routes: dict[str, list[str]] = {}
         for cfg_ex in self.cfg.executors:  # config order keeps round-robin order stable
             ex = self.executors.get(cfg_ex.name)
-            if ex is None:
+            if ex is None or ex.draining:
                 continue
             for model, info in ex.models.items():
                 models.setdefault(model, info)
                 routes.setdefault(model, []).append(ex.name)
         for name, ex in self.executors.items():  # executors not in the config (scaled out by hand)
-            if all(e.name != name for e in self.cfg.executors):
+            if not ex.draining and all(e.name != name for e in self.cfg.executors):
                 for model, info in ex.models.items():
                     models.setdefault(model, info)
                     routes.setdefault(model, []).append(name)
-        if models == self.table.models and routes == self.table.routes:
+        # Draining executors stay listed: the router answers their requests in flight normally.
+        executors = sorted(self.executors)
+        if not force and (models, routes, executors) == (self.table.models, self.table.routes, self.table.executors):
             return
         # A new placement is a new solve: robots keep their executor only until then.
         placement: dict[str, list[str]] = {}
@@ -85,13 +103,13 @@ class ClusterState:
                 placement.setdefault(e, []).append(model)
         self.quotas = assign(self.cfg, placement)
         self.table = RoutingTable(version=self.table.version + 1, models=models, routes=routes,
-                                  quotas=self.quotas.robots, limits=self.quotas.limits)
+                                  quotas=self.quotas.robots, limits=self.quotas.limits, executors=executors)
 
     def status(self, now: float | None = None) -> dict:
         now = now or time.monotonic()
         expected = [e.name for e in self.cfg.executors]
         return {
-            "executors": {n: {"device": e.device, "models": sorted(e.models), "depths": e.depths,
+            "executors": {n: {"device": e.device, "models": sorted(e.models), "depths": e.depths, "draining": e.draining,
                               "last_seen_s": round(now - e.last_seen, 3)} for n, e in self.executors.items()},
             "expected": expected,
             "table": self.table.to_wire(),

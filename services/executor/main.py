@@ -4,17 +4,13 @@ from __future__ import annotations
 
 import logging
 import os
-import threading
 
 import torch
 
-from services.executor.engine import ServedModel, make_engine
-from services.executor.tokens import tokenizer_for
-from services.executor.transport import ExecutorIO, ServedInput
+from services.executor.hosting import EngineSlot, ModelStore
+from services.executor.transport import ExecutorIO
 from shared.config import ExecutorConfig
 from shared.metrics import ExecutorMetrics, serve
-from shared.models import build_model
-from shared.protocol import ModelInfo
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
 
 log = logging.getLogger("robion.executor")
@@ -53,38 +49,29 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(int(os.environ.get("ROBION_CPU_THREADS", "1")))
     stop = stop_event(args.parent_pid)
 
-    models: dict[str, ServedModel] = {}
-    served: dict[str, ServedInput] = {}
-    for name in ex_cfg.models:
-        mc = cfg.model(name)
-        model = build_model(mc.arch, mc.size, seed=mc.seed, device=device)
-        io = model.io
-        models[name] = ServedModel(name, model, mc.slo_ms / 1e3)
-        info = ModelInfo(cameras=list(io.cameras), image_shape=list(io.image_shape), state_dim=io.state_dim,
-                         horizon=io.horizon, action_dim=io.action_dim, deadline_ms=mc.slo_ms, arch=mc.arch)
-        served[name] = ServedInput(io=io, slo_s=mc.slo_ms / 1e3, tokenize=tokenizer_for(mc, io.prompt_len), info=info)
-        log.info("loaded %s (%s/%s, seed %d) on %s", name, mc.arch, mc.size, mc.seed, device)
+    store = ModelStore(device)
+    try:
+        hosted = store.load([cfg.model(name) for name in ex_cfg.models])
+    except (OSError, ValueError, ImportError) as exc:  # weights or tokenizer files that do not fit
+        log.error("cannot load models: %s", exc)
+        return 2
 
     transport: ExecutorIO | None = None
 
     def on_results(results):
         transport.on_results(results)
 
-    engine = make_engine(models, cfg.engine, device, on_results)
-    metrics = ExecutorMetrics(args.name, ex_cfg.device, {n: s.slo_s for n, s in served.items()})
+    slot = EngineSlot(cfg.engine, device, on_results)
+    metrics = ExecutorMetrics(args.name, ex_cfg.device, {n: s.slo_s for n, s in hosted.inputs.items()})
     index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), 0)
     serve(metrics.registry, args.metrics_port if args.metrics_port is not None else ex_cfg.metrics_port_or_default(index))
-    transport = ExecutorIO(args.name, cfg, ex_cfg.device, served, engine, metrics)
-    engine.prepare()
-    engine_stop = threading.Event()
-    engine_thread = threading.Thread(target=engine.run, args=(engine_stop,), name="engine", daemon=True)
-    engine_thread.start()
-    log.info("serving %s with the %s engine", sorted(models), cfg.engine.kind)
+    transport = ExecutorIO(args.name, cfg, ex_cfg.device, store, slot, hosted, metrics)
+    took = slot.start(hosted)
+    log.info("serving %s with the %s engine (ready in %.1f s)", sorted(hosted.models), cfg.engine.kind, took)
     try:
         transport.run(stop)
     finally:
-        engine_stop.set()
-        engine_thread.join(timeout=30)
+        slot.stop()
         transport.drain()
         transport.close()
     log.info("stopped: %s", transport.stats)

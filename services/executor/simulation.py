@@ -36,8 +36,8 @@ import numpy as np
 
 from services.executor.engine import Engine, ResultSink
 from services.executor.scheduler import Request, Result
-from services.executor.tokens import byte_tokenizer
-from shared.models.base import ModelIO
+from services.executor.tokens import tokenizer_for
+from shared.models.base import VLAModel
 from shared.netmodel import NETWORKS, Network
 from shared.protocol import ProtocolError
 
@@ -120,8 +120,9 @@ class _ModelInputs:
     net_s: list[float]
 
 
-def _model_inputs(io: ModelIO, slo_s: float, count: int, net: Network, rng: np.random.Generator) -> _ModelInputs:
-    tokenize = byte_tokenizer(io.prompt_len)
+def _model_inputs(model: VLAModel, slo_s: float, count: int, net: Network, rng: np.random.Generator) -> _ModelInputs:
+    io = model.io
+    tokenize = tokenizer_for(model)
     down = io.horizon * io.action_dim * 4  # float32 action chunk
     images, states, tokens, net_s = [], [], [], []
     for i in range(count):
@@ -492,7 +493,7 @@ def simulate(engine: EngineHost | EngineFactory, workload: Sequence[RobotGroup],
     if unknown:
         raise ValueError(f"workload uses models the engine does not serve: {unknown}")
     rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 1 << 20]))
-    inputs = {m: _model_inputs(served[m].model.io, served[m].slo_s, cfg.observations, net, rng)
+    inputs = {m: _model_inputs(served[m].model, served[m].slo_s, cfg.observations, net, rng)
               for m in sorted({g.model for g in workload})}
 
     epochs: list[EpochResult] = []

@@ -7,22 +7,18 @@ from typing import Callable
 
 import numpy as np
 
-from shared.config import ModelConfig
+from shared.models.base import VLAModel
+from shared.models.tokenizer import PromptTokenizer
 
 
-def byte_tokenizer(prompt_len: int) -> Callable[[str], np.ndarray]:
-    """UTF-8 bytes shifted past the pad id 0, padded or truncated to ``prompt_len``."""
+def tokenizer_for(model: VLAModel, path: str | None = None) -> Callable[[str], np.ndarray]:
+    """The model's prompt tokenizer (a tokenizer file when given, else byte-level) returning int64 ids."""
+    tok = PromptTokenizer.for_model(model, path)
 
     @lru_cache(maxsize=4096)  # a robot repeats its instruction on every call
     def encode(text: str) -> np.ndarray:
-        ids = np.zeros(prompt_len, dtype=np.int64)
-        raw = np.frombuffer(text.encode("utf-8")[:prompt_len], dtype=np.uint8).astype(np.int64) + 1
-        ids[: len(raw)] = raw
+        ids = np.asarray(tok.ids(text), dtype=np.int64)
         ids.setflags(write=False)
         return ids
 
     return encode
-
-
-def tokenizer_for(model: ModelConfig, prompt_len: int) -> Callable[[str], np.ndarray]:
-    return byte_tokenizer(prompt_len)

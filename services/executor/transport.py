@@ -11,35 +11,19 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import zmq
 
-from services.executor.engine import Engine
+from services.executor.hosting import EngineSlot, Hosted, ModelStore, ServedInput
 from services.executor.scheduler import Request, Result
 from shared import control
-from shared.config import ClusterConfig, dial_address
+from shared.config import ClusterConfig, ModelConfig, dial_address
 from shared.metrics import ExecutorMetrics
-from shared.models.base import ModelIO
-from shared.protocol import (ErrorCode, InferReply, InferRequest, ModelInfo, ProtocolError, Timings, decode, encode,
+from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, Timings, decode, encode,
                              error_frames, header_id, message_bytes, unpack_header)
 
 log = logging.getLogger("robion.executor")
-
-Tokenize = Callable[[str], np.ndarray]
-
-
-@dataclass
-class ServedInput:
-    """What the I/O thread needs to validate and prepare a model's requests."""
-
-    io: ModelIO
-    slo_s: float
-    tokenize: Tokenize
-    info: ModelInfo
-
 
 def to_request(msg: InferRequest, served: ServedInput, envelope: bytes, arrival: float) -> Request:
     """Check a decoded request against the model's declared inputs and build the engine's Request."""
@@ -77,17 +61,21 @@ def reply_frames(res: Result, now: float) -> list:
 
 
 class ExecutorIO:
-    def __init__(self, name: str, cfg: ClusterConfig, device: str, served: dict[str, ServedInput], engine: Engine,
-                 metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None):
+    def __init__(self, name: str, cfg: ClusterConfig, device: str, store: ModelStore, slot: EngineSlot,
+                 hosted: Hosted, metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None):
         self.name = name
         self.cfg = cfg
         self.device = device
-        self.served = served
-        self.engine = engine
+        self.store = store
+        self.slot = slot
+        self.served: dict[str, ServedInput] = hosted.inputs  # replaced whole on a reload, never mutated
+        self.in_flight = 0  # requests handed to the engine and not yet answered (I/O thread only)
+        self._reload: threading.Thread | None = None
+        self._reregister = threading.Event()
         self.ctx = context or zmq.Context.instance()
         self.results: queue.SimpleQueue[list[Result]] = queue.SimpleQueue()
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
-        self.metrics = metrics or ExecutorMetrics(name, device, {n: s.slo_s for n, s in served.items()})
+        self.metrics = metrics or ExecutorMetrics(name, device, {n: s.slo_s for n, s in self.served.items()})
 
         self.backend = self.ctx.socket(zmq.DEALER)
         self.backend.setsockopt(zmq.IDENTITY, name.encode())
@@ -96,6 +84,7 @@ class ExecutorIO:
         self.backend.connect(dial_address(cfg.router.backend, cfg.router.backend_connect))
 
         self.ctl = self.ctx.socket(zmq.DEALER)
+        self.ctl.setsockopt(zmq.IDENTITY, name.encode())  # the control plane addresses load requests by name
         self.ctl.setsockopt(zmq.LINGER, 0)
         self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
 
@@ -150,12 +139,49 @@ class ExecutorIO:
                         continue
                     if msg.get("kind") == "reregister":
                         self.register()
+                    elif msg.get("kind") == "load":
+                        self._start_reload(msg)
+            if self._reregister.is_set():
+                self._reregister.clear()
+                self.register()
             now = time.monotonic()
             if now - last_beat >= self.cfg.control.heartbeat_s:
                 last_beat = now
-                depths = self.engine.queues.depths()
+                depths = self.slot.depths()
                 self.ctl.send(control.pack("heartbeat", executor=self.name, depths=depths))
                 self._update_gauges(depths)
+
+    def _start_reload(self, msg: dict) -> None:
+        if self._reload is not None and self._reload.is_alive():
+            log.warning("a model reload is already running; ignoring another")
+            return
+        try:
+            configs = [ModelConfig(**m) for m in msg["models"]]
+        except (KeyError, TypeError) as exc:
+            log.error("malformed load request: %s", exc)
+            return
+        self._reload = threading.Thread(target=self._reload_models, args=(configs,), name="reload", daemon=True)
+        self._reload.start()
+
+    def _reload_models(self, configs: list[ModelConfig]) -> None:
+        """Off the I/O thread: wait for held requests to be answered, then swap models and engine."""
+        names = [mc.name for mc in configs]
+        log.info("reloading with models %s: waiting for %d requests in flight", names, self.in_flight)
+        end = time.monotonic() + 60
+        while self.in_flight > 0 and time.monotonic() < end:
+            time.sleep(0.01)
+        self.slot.stop()  # anything still held is answered UNAVAILABLE by the engine's finish
+        try:
+            hosted = self.store.load(configs)
+            took = self.slot.start(hosted)
+        except Exception:
+            log.exception("loading %s failed; keeping the previous models", names)
+            hosted = self.store.load([s.config for s in self.served.values()])
+            took = self.slot.start(hosted)
+        self.metrics.slo_s = {n: s.slo_s for n, s in hosted.inputs.items()}
+        self.served = hosted.inputs
+        log.info("now serving %s (engine ready in %.1f s)", sorted(hosted.inputs), took)
+        self._reregister.set()
 
     def drain(self, timeout_s: float = 5.0) -> None:
         """After the engine stopped: send every remaining result so no request goes unanswered."""
@@ -191,6 +217,7 @@ class ExecutorIO:
             for res in batch:
                 r = res.request
                 self.backend.send_multipart([r.envelope, *reply_frames(res, now)], copy=False)
+                self.in_flight -= 1
                 sent = True
                 if res.error is not None:
                     self.stats["errors"] += 1
@@ -223,8 +250,9 @@ class ExecutorIO:
             served = self.served.get(msg.model)
             if served is None:
                 raise ProtocolError(ErrorCode.UNKNOWN_MODEL, f"model {msg.model!r} is not served by {self.name}")
+            self.slot.submit(to_request(msg, served, envelope, arrival))
             self.stats["requests"] += 1
-            self.engine.submit(to_request(msg, served, envelope, arrival))
+            self.in_flight += 1
         except ProtocolError as exc:
             self.stats["errors"] += 1
             model = header.get("model") if rid and isinstance(header.get("model"), str) else ""

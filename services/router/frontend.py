@@ -25,7 +25,7 @@ from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, encode, e
 log = logging.getLogger("robion.router")
 
 MAX_IN_FLIGHT = 65536
-TABLE_POLL_S = 0.2
+TABLE_POLL_S = 0.1
 
 
 @dataclass

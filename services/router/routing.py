@@ -23,14 +23,14 @@ class Routing:
         self.assigned: Counter[tuple[str, str]] = Counter()  # (model, executor) -> pinned robots
 
     def update(self, table: RoutingTable) -> set[str]:
-        """Swap in a newer table in one assignment; returns executors that left it.
+        """Swap in a newer table in one assignment; returns executors that are gone (not merely draining).
 
         Pins that still fit the new routes and quotas are kept, so a re-solve moves only the
         robots it has to.
         """
-        before = {e for ex in self.table.routes.values() for e in ex}
+        before = set(self.table.executors)
         self.table = table
-        after = {e for ex in table.routes.values() for e in ex}
+        after = set(table.executors)
         pins: dict[tuple[bytes, str], str] = {}
         counts: Counter[tuple[str, str]] = Counter()
         for (robot, model), ex in self.pins.items():

@@ -1,0 +1,109 @@
+"""Applying a new placement to a live cluster, one executor at a time.
+
+For each executor whose models change: take it out of routing (draining; its requests in
+flight are still answered), tell it to load the new model set, and put it back once it
+registers with that set. Executors that gain models go first, so a model moving between
+executors always has a host. The routing table switches atomically at each step.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass
+from typing import Callable
+
+from services.controlplane.state import ClusterState
+from shared.config import ClusterConfig, ModelConfig
+
+log = logging.getLogger("robion.control")
+
+SendLoad = Callable[[str, list[ModelConfig]], None]
+
+
+@dataclass
+class Step:
+    executor: str
+    models: list[ModelConfig]
+    started: float = 0.0
+    drained_version: int = 0  # the table version without this executor's routes
+    loading: bool = False
+
+
+def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> list[Step]:
+    """The executors (registered now) whose hosted models or model settings differ in ``new``."""
+    steps: list[tuple[int, int, Step]] = []
+    for name, ex in state.executors.items():
+        try:
+            wanted = new.executor(name).models
+        except KeyError:
+            continue  # a replica outside the config keeps what it has
+        current = set(ex.models)
+
+        def changed(model: str) -> bool:
+            try:
+                return asdict(old.model(model)) != asdict(new.model(model))
+            except KeyError:
+                return True
+
+        if set(wanted) == current and not any(changed(m) for m in wanted):
+            continue
+        added, removed = len(set(wanted) - current), len(current - set(wanted))
+        steps.append((-added, removed, Step(name, [new.model(m) for m in wanted])))
+    return [s for _, _, s in sorted(steps, key=lambda t: (t[0], t[1], t[2].executor))]
+
+
+class Rollout:
+    def __init__(self, steps: list[Step], timeout_s: float = 600.0):
+        self.pending = list(steps)
+        self.timeout_s = timeout_s
+        self.done_steps: list[str] = []
+        self.failed: list[str] = []
+
+    @property
+    def current(self) -> Step | None:
+        return self.pending[0] if self.pending else None
+
+    @property
+    def finished(self) -> bool:
+        return not self.pending
+
+    def tick(self, state: ClusterState, send_load: SendLoad, now: float | None = None) -> None:
+        now = now or time.monotonic()
+        step = self.current
+        if step is None:
+            return
+        if not step.started:
+            if step.executor not in state.executors:
+                log.warning("executor %s is gone; skipping its placement change", step.executor)
+                self.failed.append(step.executor)
+                self.pending.pop(0)
+                return
+            step.started = now
+            state.set_draining(step.executor, True)
+            step.drained_version = state.table.version
+        elif not step.loading and state.router_version >= step.drained_version:
+            # Only once the router routes by the drained table can no new request reach the executor.
+            step.loading = True
+            send_load(step.executor, step.models)
+            log.info("placement change: %s drained, loading %s", step.executor, [m.name for m in step.models])
+        elif now - step.started > self.timeout_s:
+            log.error("executor %s did not reload within %.0f s; resuming it as it is", step.executor, self.timeout_s)
+            state.set_draining(step.executor, False)
+            self.failed.append(step.executor)
+            self.pending.pop(0)
+
+    def on_register(self, state: ClusterState, executor: str, models: list[str]) -> None:
+        step = self.current
+        if step is None or step.executor != executor or not step.loading:
+            return
+        if sorted(models) != sorted(m.name for m in step.models):
+            return  # a re-registration with the old set (e.g. a heartbeat hiccup): keep waiting
+        state.set_draining(executor, False)
+        log.info("placement change: %s serves %s again (table v%d)", executor, sorted(models), state.table.version)
+        self.done_steps.append(executor)
+        self.pending.pop(0)
+
+    def status(self) -> dict:
+        return {"pending": [s.executor for s in self.pending], "done": self.done_steps, "failed": self.failed,
+                "current": self.current.executor if self.current and self.current.started else None}
