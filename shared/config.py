@@ -93,6 +93,20 @@ class RouterConfig:
 
 
 @dataclass
+class LimitsConfig:
+    """How executors measure robot limits C_i for models whose config gives none."""
+
+    auto: bool = False  # measure at executor start-up (cached in control.state_dir/limits.json)
+    target: float = field(default=0.98, metadata=_check(lambda v: 0 < v <= 1, "expected a share in (0, 1]"))
+    epochs: int = field(default=5, metadata=_check(_positive, "expected a positive integer"))
+    duration_s: float = field(default=10.0, metadata=_check(_positive, "expected a positive number"))
+    max_robots: int = field(default=256, metadata=_check(_positive, "expected a positive integer"))
+    seed: int = 0
+    network: str = "wifi7"
+    progress: bool = True
+
+
+@dataclass
 class ControlConfig:
     bind: str = "tcp://127.0.0.1:5557"
     connect: str | None = None  # address other services dial when it differs from the bind (containers)
@@ -102,6 +116,7 @@ class ControlConfig:
     metrics_port: int = field(default=9101, metadata=_check(_non_negative, "expected a port number (0 disables)"))
     strategy: str = "ip"  # robot-to-GPU assignment: ip (integer program), smg, eps, none (round-robin per request)
     solve_time_limit_s: float = field(default=5.0, metadata=_check(_positive, "expected a positive number"))
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
 
 
 @dataclass
@@ -262,6 +277,8 @@ def _validate(cfg: ClusterConfig) -> None:
         raise ConfigError("engine.static_sms: sm_policy static needs a positive multiple of 8")
     if cfg.control.strategy not in STRATEGIES:
         raise ConfigError(f"control.strategy: expected one of {', '.join(STRATEGIES)}, got {cfg.control.strategy!r}")
+    if cfg.control.limits.network not in NETWORKS:
+        raise ConfigError(f"control.limits.network: expected one of {', '.join(NETWORKS)}, got {cfg.control.limits.network!r}")
     if cfg.fleet.network not in NETWORKS:
         raise ConfigError(f"fleet.network: expected one of {', '.join(NETWORKS)}, got {cfg.fleet.network!r}")
     for k, name in enumerate(cfg.fleet.models or []):

@@ -111,7 +111,8 @@ class ControlPlane:
         st = self.state
         if kind == "register":
             models = {n: ModelInfo.from_wire(i) for n, i in msg["models"].items()}
-            st.register(str(msg["executor"]), str(msg.get("device", "")), models)
+            limits = {str(m): int(c) for m, c in dict(msg.get("limits") or {}).items()}
+            st.register(str(msg["executor"]), str(msg.get("device", "")), models, limits=limits)
             log.info("executor %s registered on %s with %s (table v%d)", msg["executor"], msg.get("device"),
                      sorted(models), st.table.version)
             if self.rollout is not None:

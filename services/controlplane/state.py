@@ -31,12 +31,15 @@ class ClusterState:
         self.router_seen = 0.0
         self.router_version = -1
         self.quotas = Quotas({}, {})
+        self.measured_limits: dict[str, int] = {}  # robot limits reported by executors
 
     @property
     def timeout_s(self) -> float:
         return self.cfg.control.heartbeat_s * self.cfg.control.missed_heartbeats
 
-    def register(self, name: str, device: str, models: dict[str, ModelInfo], now: float | None = None) -> None:
+    def register(self, name: str, device: str, models: dict[str, ModelInfo], now: float | None = None,
+                 limits: dict[str, int] | None = None) -> None:
+        self.measured_limits.update(limits or {})
         old = self.executors.get(name)
         self.executors[name] = ExecutorState(name, device, models, now or time.monotonic(),
                                              draining=old.draining if old else False)
@@ -101,7 +104,7 @@ class ClusterState:
         for model, execs in routes.items():
             for e in execs:
                 placement.setdefault(e, []).append(model)
-        self.quotas = assign(self.cfg, placement)
+        self.quotas = assign(self.cfg, placement, self.measured_limits)
         self.table = RoutingTable(version=self.table.version + 1, models=models, routes=routes,
                                   quotas=self.quotas.robots, limits=self.quotas.limits, executors=executors)
 
@@ -113,6 +116,7 @@ class ClusterState:
                               "last_seen_s": round(now - e.last_seen, 3)} for n, e in self.executors.items()},
             "expected": expected,
             "table": self.table.to_wire(),
+            "limits": {m.name: m.limit if m.limit is not None else self.measured_limits.get(m.name) for m in self.cfg.models},
             "router": {"version": self.router_version,
                        "last_seen_s": round(now - self.router_seen, 3) if self.router_seen else None},
             "ready": (all(n in self.executors for n in expected) and self.router_version == self.table.version

@@ -20,7 +20,7 @@ class Quotas:
     result: PlanResult | None = None
 
 
-def assign(cfg: ClusterConfig, placement: dict[str, list[str]]) -> Quotas:
+def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[str, int] | None = None) -> Quotas:
     """Solve the robot-to-GPU assignment over the executors alive now (``placement``: executor -> models).
 
     When the integer program is infeasible the even split is used instead, so every robot
@@ -29,7 +29,9 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]]) -> Quotas:
     demands = {m.name: m for m in cfg.models if m.robots > 0}
     if cfg.control.strategy == "none" or not demands:
         return Quotas({}, {})
-    missing = [m.name for m in demands.values() if m.limit is None]
+    measured = measured or {}
+    limit = {n: m.limit if m.limit is not None else measured.get(n) for n, m in demands.items()}
+    missing = [n for n, c in limit.items() if c is None]
     if missing:
         log.warning("no robot limit for %s: robots are spread round-robin per request", missing)
         return Quotas({}, {})
@@ -40,7 +42,7 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]]) -> Quotas:
             hosts.setdefault(model, []).append(j)
     try:
         problem = PlanProblem(len(executors), tuple(
-            ModelDemand(m.name, m.limit, m.robots, tuple(hosts.get(m.name, ()))) for m in demands.values()))
+            ModelDemand(m.name, limit[m.name], m.robots, tuple(hosts.get(m.name, ()))) for m in demands.values()))
     except PlanInputError as exc:
         log.error("cannot plan the traffic: %s", exc)
         return Quotas({}, {})
@@ -52,4 +54,4 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]]) -> Quotas:
         log.warning("traffic assignment exceeds GPU limits: %s", result.diagnosis)
     robots = {m: {executors[j]: n for j, n in per_gpu.items() if n} for m, per_gpu in result.assignment.items()}
     log.info("traffic assignment (%s, objective %s): %s", result.strategy, result.objective, robots)
-    return Quotas(robots, {m.name: m.limit for m in demands.values()}, result)
+    return Quotas(robots, {n: int(c) for n, c in limit.items()}, result)

@@ -8,6 +8,7 @@ import os
 import torch
 
 from services.executor.hosting import EngineSlot, ModelStore
+from services.executor.limits import measure_limits
 from services.executor.transport import ExecutorIO
 from shared.config import ExecutorConfig
 from shared.metrics import ExecutorMetrics, serve
@@ -61,11 +62,14 @@ def main(argv: list[str] | None = None) -> int:
     def on_results(results):
         transport.on_results(results)
 
+    limits: dict[str, int] = {}
+    if cfg.control.limits.auto:
+        limits = measure_limits(cfg, args.name, hosted.models, device)
     slot = EngineSlot(cfg.engine, device, on_results)
     metrics = ExecutorMetrics(args.name, ex_cfg.device, {n: s.slo_s for n, s in hosted.inputs.items()})
     index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), 0)
     serve(metrics.registry, args.metrics_port if args.metrics_port is not None else ex_cfg.metrics_port_or_default(index))
-    transport = ExecutorIO(args.name, cfg, ex_cfg.device, store, slot, hosted, metrics)
+    transport = ExecutorIO(args.name, cfg, ex_cfg.device, store, slot, hosted, metrics, limits=limits)
     took = slot.start(hosted)
     log.info("serving %s with the %s engine (ready in %.1f s)", sorted(hosted.models), cfg.engine.kind, took)
     try:

@@ -62,13 +62,15 @@ def reply_frames(res: Result, now: float) -> list:
 
 class ExecutorIO:
     def __init__(self, name: str, cfg: ClusterConfig, device: str, store: ModelStore, slot: EngineSlot,
-                 hosted: Hosted, metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None):
+                 hosted: Hosted, metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None,
+                 limits: dict[str, int] | None = None):
         self.name = name
         self.cfg = cfg
         self.device = device
         self.store = store
         self.slot = slot
         self.served: dict[str, ServedInput] = hosted.inputs  # replaced whole on a reload, never mutated
+        self.limits = limits or {}  # measured robot limits of the models this executor owns
         self.in_flight = 0  # requests handed to the engine and not yet answered (I/O thread only)
         self._reload: threading.Thread | None = None
         self._reregister = threading.Event()
@@ -103,7 +105,7 @@ class ExecutorIO:
 
     def register(self) -> None:
         self.ctl.send(control.pack("register", executor=self.name, device=self.device,
-                                   models={n: s.info.to_wire() for n, s in self.served.items()}))
+                                   models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits))
         # Say hello to the router so its ROUTER socket knows our identity before the first request.
         self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name)])
 

@@ -1,0 +1,98 @@
+"""Robot limits C_i: how many robots of a model one GPU sustains at the target SLO attainment.
+
+Found by driving simulated robots through this executor's own engine (the capacity search
+of services/executor/simulation.py) before the executor starts serving, and cached by GPU
+name, architecture, frequency, max_batch, deadline and engine, so a restart or another
+executor on the same kind of GPU reuses them. Each executor measures only the models it
+owns (the first executor in the config hosting the model), so executors on separate GPUs
+measure in parallel and nothing is measured twice.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import torch
+
+from services.executor.engine import ServedModel, make_engine
+from services.executor.simulation import SimConfig, find_capacity
+from shared.config import ClusterConfig, EngineConfig
+
+log = logging.getLogger("robion.executor")
+
+
+def device_name(device: torch.device) -> str:
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+
+
+def limit_key(device: torch.device, served: ServedModel, size: str, hz: float, engine: EngineConfig, target: float) -> str:
+    return "|".join([device_name(device), f"{served.model.arch}:{size}", f"{hz:g}Hz", f"mb{engine.max_batch}",
+                     f"{served.slo_s * 1e3:g}ms", engine.kind, f"at{target:g}"])
+
+
+class LimitCache:
+    """A JSON file of measured limits, shared by the executors of one state directory."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    def read(self) -> dict[str, dict]:
+        try:
+            return json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def write(self, key: str, entry: dict) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        data = self.read()
+        data[key] = entry
+        tmp = self.path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
+        tmp.replace(self.path)  # atomic: a concurrent reader sees the old or the new file, never half
+
+
+def owned_models(cfg: ClusterConfig, executor: str, hosted: list[str]) -> list[str]:
+    """Models this executor measures: those it is the first executor in the config to host."""
+    first: dict[str, str] = {}
+    for ex in cfg.executors:
+        for m in ex.models:
+            first.setdefault(m, ex.name)
+    return [m for m in hosted if first.get(m, executor) == executor]
+
+
+def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedModel], device: torch.device) -> dict[str, int]:
+    """Limits for the models this executor owns and the config leaves open; cached ones are reused."""
+    lc = cfg.control.limits
+    cache = LimitCache(Path(cfg.control.state_dir) / "limits.json")
+    known = cache.read()
+    out: dict[str, int] = {}
+    for name in owned_models(cfg, executor, list(models)):
+        mc = cfg.model(name)
+        if mc.limit is not None:
+            continue
+        served = models[name]
+        key = limit_key(device, served, mc.size, mc.hz, cfg.engine, lc.target)
+        if key in known:
+            out[name] = int(known[key]["limit"])
+            continue
+        log.info("measuring the robot limit of %s (%s) at %g Hz ...", name, key, mc.hz)
+        t0 = time.monotonic()
+        engine_cfg = dataclasses.replace(cfg.engine)
+        result = find_capacity(lambda sink: make_engine({name: served}, engine_cfg, device, sink), name, hz=mc.hz,
+                               sim=SimConfig(epochs=lc.epochs, duration_s=lc.duration_s, seed=lc.seed,
+                                             network=lc.network),
+                               target=lc.target, max_robots=lc.max_robots, progress=lc.progress)
+        took = time.monotonic() - t0
+        limit = max(1, result.capacity)
+        entry = {"limit": limit, "measured_s": round(took, 1), "points": [
+            {"robots": p.robots, "slo_attainment": p.slo_attainment} for p in result.points]}
+        cache.write(key, entry)
+        known[key] = entry  # a fine-tuned variant of the same architecture and settings reuses it
+        log.info("robot limit of %s: %d robots (search took %.0f s)", name, limit, took)
+        out[name] = limit
+    return out
