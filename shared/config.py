@@ -57,6 +57,8 @@ class ExecutorConfig:
     name: str
     models: list[str]
     device: str = "cpu"  # "cpu" or "cuda:N"
+    memory_gb: float | None = field(default=None, metadata=_check(_positive, "expected a positive number"))
+    # device memory to plan with; checked against the models' estimated needs (see shared/placement.py)
     metrics_port: int | None = field(default=None, metadata=_check(_non_negative, "expected a port number (0 disables)"))
     # None: 9110 + the executor's position in this list
 
@@ -365,6 +367,10 @@ def _expand_placement(data: Any) -> Any:
 def config_from_dict(data: Any) -> ClusterConfig:
     cfg = _build(ClusterConfig, _expand_placement(data), "")
     _validate(cfg)
+    if any(e.memory_gb is not None for e in cfg.executors):
+        from shared.placement import check_fit
+
+        check_fit(cfg)
     return cfg
 
 

@@ -108,3 +108,20 @@ def test_placement_errors(placement, message):
     with pytest.raises(ConfigError) as e:
         _expand_placement(placed(placement))
     assert str(e.value).startswith(message), str(e.value)
+
+
+def test_placement_must_fit_device_memory():
+    from shared.placement import GIB, model_bytes
+
+    # The estimate covers the peaks measured on the H100 (docs/RESULTS.md, model zoo: batch 4).
+    for arch, peak_gib in (("pi0", 6.46), ("smolvla", 1.20), ("groot_n15", 4.98), ("xr0", 9.40)):
+        assert peak_gib * GIB < model_bytes(arch, "full", 4) < 1.8 * peak_gib * GIB, arch  # conservative, not wasteful
+    data = {"models": [{"name": "pi0", "arch": "pi0", "size": "full"}, {"name": "xr0", "arch": "xr0", "size": "full"}],
+            "executors": [{"name": "g0", "device": "cuda:0", "models": ["pi0"], "memory_gb": 80},
+                          {"name": "g1", "device": "cuda:1", "models": ["pi0", "xr0"], "memory_gb": 16}]}
+    with pytest.raises(ConfigError) as e:
+        config_from_dict(data)
+    assert str(e.value).startswith("executors[1].models: the models placed on g1 need about 19.3 GiB")
+    assert "but it has 16.0 GiB" in str(e.value)
+    data["executors"][1]["memory_gb"] = 24
+    config_from_dict(data)

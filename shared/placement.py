@@ -1,0 +1,69 @@
+"""Does a placement fit? Device memory each executor's models need, estimated before loading.
+
+Per model: weights (bf16 on a GPU) + the engine's static buffers (inputs, handoff twice: the
+VLM output and the action input, outputs) for every batch size up to max_batch + a working
+margin for the graphs' activation pools (a share of the weights plus a per-batch amount,
+chosen to cover the zoo's measured peaks on the H100, where SmolVLA's 512x512 vision tower
+makes activations large next to its weights). Per executor: a fixed overhead for the CUDA context,
+cuBLAS workspaces and green contexts.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+from shared.config import ClusterConfig, ConfigError
+
+GIB = 1024**3
+CONTEXT_OVERHEAD = int(1.0 * GIB)
+ACTIVATION_SHARE = 0.15  # of the weights
+ACTIVATION_PER_BATCH = int(0.25 * GIB)  # per unit of max_batch
+
+
+@lru_cache(maxsize=64)
+def model_bytes(arch: str, size: str, max_batch: int, dtype_bytes: int = 2) -> int:
+    import torch
+
+    from shared.models.registry import build_meta
+
+    model = build_meta(arch, size)
+    weights = sum(p.numel() for p in model.parameters()) * dtype_bytes
+    buffers = 0
+    b = 1
+    while b <= max_batch:
+        spec = model.handoff_spec(b)
+        handoff = sum(torch.Size(shape).numel() * torch.empty((), dtype=dt).element_size() for shape, dt in spec.values())
+        io = model.io
+        inputs = b * (len(io.cameras) * io.image_shape[0] * io.image_shape[1] * 3 + 4 * io.state_dim + 8 * io.prompt_len)
+        outputs = b * io.horizon * io.action_dim * 4 * 3  # noise, device output, pinned copies
+        buffers += 2 * handoff + 2 * inputs + outputs
+        b *= 2
+    return int(weights * (1 + ACTIVATION_SHARE) + ACTIVATION_PER_BATCH * max_batch + buffers)
+
+
+def executor_bytes(cfg: ClusterConfig, executor: str) -> int:
+    ex = cfg.executor(executor)
+    # Fine-tuned variants of one architecture still hold their own weights.
+    return CONTEXT_OVERHEAD + sum(model_bytes(cfg.model(m).arch, cfg.model(m).size, cfg.engine.max_batch)
+                                  for m in ex.models)
+
+
+def check_fit(cfg: ClusterConfig, free_bytes: dict[str, int] | None = None) -> None:
+    """Raise ConfigError naming the first executor whose models do not fit its memory.
+
+    Memory comes from ``free_bytes`` (measured on the device) or the config's ``memory_gb``;
+    executors with neither are not checked.
+    """
+    for j, ex in enumerate(cfg.executors):
+        have = (free_bytes or {}).get(ex.name)
+        if have is None and ex.memory_gb is not None:
+            have = int(ex.memory_gb * GIB)
+        if have is None:
+            continue
+        need = executor_bytes(cfg, ex.name)
+        if need > have:
+            per = ", ".join(f"{m} {model_bytes(cfg.model(m).arch, cfg.model(m).size, cfg.engine.max_batch) / GIB:.1f}"
+                            for m in ex.models)
+            raise ConfigError(f"executors[{j}].models: the models placed on {ex.name} need about {need / GIB:.1f} GiB "
+                              f"({per} GiB, plus {CONTEXT_OVERHEAD / GIB:.0f} GiB for the CUDA context) but it has "
+                              f"{have / GIB:.1f} GiB: place fewer models there, or add a GPU")
