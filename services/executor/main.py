@@ -10,8 +10,9 @@ import torch
 from services.executor.hosting import EngineSlot, ModelStore
 from services.executor.limits import measure_limits
 from services.executor.transport import ExecutorIO
-from shared.config import ExecutorConfig
+from shared.config import ConfigError, ExecutorConfig
 from shared.metrics import ExecutorMetrics, serve
+from shared.placement import check_fit
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
 
 log = logging.getLogger("robion.executor")
@@ -50,6 +51,13 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(int(os.environ.get("ROBION_CPU_THREADS", "1")))
     stop = stop_event(args.parent_pid)
 
+    if device.type == "cuda" and any(e.name == args.name for e in cfg.executors):
+        free, _ = torch.cuda.mem_get_info(device)
+        try:
+            check_fit(cfg, {args.name: free})
+        except ConfigError as exc:
+            log.error("%s", exc)
+            return 2
     store = ModelStore(device)
     try:
         hosted = store.load([cfg.model(name) for name in ex_cfg.models])
