@@ -1,7 +1,10 @@
 """Every service serves /metrics with the documented names, and the values move under load."""
 
 import re
+import time
 import urllib.request
+
+import pytest
 
 import numpy as np
 
@@ -26,10 +29,11 @@ def value(text: str, name: str, **labels) -> float:
     return total
 
 
-def test_metrics_endpoints_and_movement(tmp_path):
+@pytest.mark.parametrize("engine", ["monolithic", "robion"])
+def test_metrics_endpoints_and_movement(tmp_path, engine):
     rm, cm, em = free_ports(3)
     path, data = cluster_config(tmp_path, executors=[{"name": "ex0", "device": "cpu", "models": ["toy-a", "toy-b"],
-                                                      "metrics_port": em}])
+                                                      "metrics_port": em}], engine={"kind": engine, "max_batch": 2})
     data["router"]["metrics_port"] = rm
     data["control"]["metrics_port"] = cm
     import yaml
@@ -76,6 +80,10 @@ def test_metrics_endpoints_and_movement(tmp_path):
         assert value(router, "robion_router_requests_total", model="toy-a", status="ok") == 12
         assert value(router, "robion_router_request_duration_seconds_count", model="toy-a") == 12
         assert re.search(r"robion_router_routing_table_version \d", router)
+        if engine == "robion":  # lockstep telemetry reaches the metrics within a heartbeat
+            time.sleep(0.5)
+            locksteps = value(scrape(em), "robion_lockstep_duration_seconds_count")
+            assert locksteps >= value(after, "robion_execution_count_total", model="toy-a")
 
 
 def test_dashboard_queries_only_metrics_the_services_define():

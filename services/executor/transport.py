@@ -74,6 +74,13 @@ class ExecutorIO:
         self.in_flight = 0  # requests handed to the engine and not yet answered (I/O thread only)
         self._reload: threading.Thread | None = None
         self._reregister = threading.Event()
+        self._telemetry = None
+        self._last_lockstep = -1
+        self._sm_count = 0
+        if device.startswith("cuda"):
+            import torch
+
+            self._sm_count = torch.cuda.get_device_properties(torch.device(device)).multi_processor_count
         self.ctx = context or zmq.Context.instance()
         self.results: queue.SimpleQueue[list[Result]] = queue.SimpleQueue()
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
@@ -202,10 +209,29 @@ class ExecutorIO:
     def _update_gauges(self, depths: dict[str, int]) -> None:
         for model, depth in depths.items():
             self.metrics.queue_depth.labels(model).set(depth)
+        self._observe_locksteps()
         if self.device.startswith("cuda"):
             import torch
 
             self.metrics.gpu_memory.labels(self.device).set(torch.cuda.memory_reserved(torch.device(self.device)))
+
+    def _observe_locksteps(self) -> None:
+        """Feed the lockstep engine's telemetry records that arrived since the last call into the metrics."""
+        telemetry = getattr(self.slot.engine, "telemetry", None)
+        if telemetry is None:
+            return
+        if telemetry is not self._telemetry:  # a reload brought a new engine: its indices restart
+            self._telemetry, self._last_lockstep = telemetry, -1
+        for rec in telemetry.records():
+            if rec.index <= self._last_lockstep:
+                continue
+            self._last_lockstep = rec.index
+            self.metrics.lockstep.observe(rec.duration_ms / 1e3)
+            gap = getattr(rec, "cpu_gap_us", None)
+            if gap is not None:
+                self.metrics.lockstep_gap.observe(gap / 1e6)
+            if rec.vlm_batch:
+                self.metrics.sm_level.set(rec.sm_level if rec.sm_level is not None else self._sm_count)
 
     def _send_results(self) -> bool:
         sent = False
