@@ -1,0 +1,40 @@
+"""The multi-GPU experiment driver on the CPU with tiny models: assignments per strategy and placement."""
+
+import json
+import os
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+FAST = ["--size", "tiny", "--gpus", "2", "--devices", "cpu", "--engine", "monolithic", "--epochs", "1",
+        "--duration", "1.5", "--limit-epochs", "1", "--limit-duration", "1", "--max-robots", "4"]
+
+
+def run(tmp_path, *args):
+    out = tmp_path / "r.json"
+    res = subprocess.run([sys.executable, "bench/traffic.py", *args, *FAST, "--out", str(out)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return json.loads(out.read_text())
+
+
+def test_strategies_experiment(tmp_path):
+    r = run(tmp_path, "strategies", "--arch", "pi0")
+    rows = {row["label"]: row for row in r["rows"]}
+    assert set(rows) == {"smg", "eps", "ip"}
+    robots = {v["name"]: v["robots"] for v in r["variants"]}
+    assert [v["hz"] for v in r["variants"]] == [1, 2, 2, 4]
+    for row in rows.values():
+        assert {m: sum(per.values()) for m, per in row["assignment"].items()} == robots
+        assert row["sent"] > 0 and 0 <= row["misses"] <= row["sent"]
+    assert all(len(per) == 1 for per in rows["smg"]["assignment"].values())  # one GPU per model
+    assert all(len(per) == 2 for per in rows["eps"]["assignment"].values())  # split over both
+    assert rows["ip"]["feasible"]
+
+
+def test_placements_experiment(tmp_path):
+    r = run(tmp_path, "placements", "--arch", "pi0", "--arch2", "xr0", "--robots", "4")
+    labels = [row["label"] for row in r["rows"]]
+    assert labels == ["mix", "gr-1:1"]
+    group = r["rows"][1]["assignment"]
+    assert all(set(per) <= {"0"} if m.startswith("pi0") else set(per) <= {"1"} for m, per in group.items())
