@@ -1,0 +1,149 @@
+"""Co-location (paper experiment 4) and queue-policy (experiment 5) runs on one GPU.
+
+E4: 2-4 models share one GPU (same or different architectures, balanced or skewed robot
+populations); Robion and Monolithic serve the same seeded robots, side by side in one
+process, and the SLO miss ratio (1 - SLO attainment) is compared.
+E5: the Robion engine with earliest-SLO-first, round-robin and largest-queue-first queues,
+with equal and with different deadlines.
+
+    python bench/colocation.py e4 --size full --device cuda:0 --robots 12,16,20 --out bench/results/colocation_e4.json
+    python bench/colocation.py e5 --size full --device cuda:0 --robots 12,16,20 --out bench/results/policies_e5.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import subprocess
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+PAPER_DEADLINES_MS = {"pi0": 156.0, "xr0": 117.0, "smolvla": 50.0, "groot_n15": 53.0}
+
+# name -> [(model name, arch, seed, share of the robots)]
+E4_SCENARIOS = {
+    "same-2": [("pi0-a", "pi0", 1, 1), ("pi0-b", "pi0", 2, 1)],
+    "same-4": [("pi0-a", "pi0", 1, 1), ("pi0-b", "pi0", 2, 1), ("pi0-c", "pi0", 3, 1), ("pi0-d", "pi0", 4, 1)],
+    "diff-2": [("pi0", "pi0", 1, 1), ("xr0", "xr0", 1, 1)],
+    "diff-4": [("pi0", "pi0", 1, 1), ("xr0", "xr0", 1, 1), ("smolvla", "smolvla", 1, 1), ("groot", "groot_n15", 1, 1)],
+    "skewed-2": [("pi0", "pi0", 1, 3), ("xr0", "xr0", 1, 1)],
+    "skewed-same-2": [("pi0-a", "pi0", 1, 3), ("pi0-b", "pi0", 2, 1)],
+}
+# E5: (scenario, deadline override per model in ms or None for the paper's)
+E5_SCENARIOS = {
+    "equal-deadlines": ([("pi0", "pi0", 1, 1), ("xr0", "xr0", 1, 1)], {"pi0": 117.0, "xr0": 117.0}),
+    "different-deadlines": ([("pi0", "pi0", 1, 1), ("xr0", "xr0", 1, 1), ("smolvla", "smolvla", 1, 1)], {}),
+}
+
+
+def split(total: int, shares: list[float]) -> list[int]:
+    """Integer robot counts in proportion to ``shares`` summing to ``total`` (largest remainders)."""
+    raw = [total * s / sum(shares) for s in shares]
+    out = [int(x) for x in raw]
+    for i in sorted(range(len(raw)), key=lambda i: raw[i] - out[i], reverse=True)[: total - sum(out)]:
+        out[i] += 1
+    return out
+
+
+def run(args) -> dict:
+    import torch
+
+    from services.executor.engine import ServedModel
+    from services.executor.simulation import EngineHost, RobotGroup, SimConfig, engine_factory, simulate
+    from shared.models import build_model
+
+    device = args.device
+    sim = SimConfig(epochs=args.epochs, duration_s=args.duration, seed=args.seed)
+    if args.experiment == "e4":
+        scenarios = {n: (s, {}) for n, s in E4_SCENARIOS.items() if not args.scenarios or n in args.scenarios}
+        engines = {"robion": {"kind": "robion"}, "monolithic": {"kind": "monolithic"}}
+    else:
+        scenarios = {n: s for n, s in E5_SCENARIOS.items() if not args.scenarios or n in args.scenarios}
+        engines = {p: {"kind": "robion", "policy": p} for p in ("esf", "rr", "lqf")}
+    common = {"max_batch": args.max_batch}
+    if args.sm_table:
+        common["sm_table"] = args.sm_table
+    cache: dict = {}
+    rows = []
+    for name, (models, deadlines) in scenarios.items():
+        served = {}
+        for mname, arch, seed, _ in models:
+            key = (arch, seed)
+            if key not in cache:
+                cache[key] = build_model(arch, args.size, seed=seed, device=device)
+            ms = deadlines.get(mname, PAPER_DEADLINES_MS.get(arch, args.deadline))
+            served[mname] = ServedModel(mname, cache[key], ms / 1e3)
+        hosts = {label: EngineHost(engine_factory(e["kind"], served, device, **common,
+                                                  **{k: v for k, v in e.items() if k != "kind"}), label=label)
+                 for label, e in engines.items()}
+        for total in [int(x) for x in args.robots.split(",")]:
+            counts = split(total, [m[3] for m in models])
+            workload = [RobotGroup(m[0], n, args.hz) for m, n in zip(models, counts) if n > 0]
+            labels = list(hosts) if total % 2 == 0 else list(reversed(hosts))  # alternate who runs first
+            for label in labels:
+                res = simulate(hosts[label], workload, sim)
+                rows.append({"scenario": name, "engine": label, "robots": total, "counts": counts,
+                             "slo_attainment": res.overall.slo_attainment, "miss_ratio": 1 - res.overall.slo_attainment,
+                             "p99_ms": res.overall.p99_ms, "submit_lag_max_ms": res.submit_lag_max_ms,
+                             "models": {m: {"slo_attainment": s.slo_attainment, "p99_ms": s.p99_ms}
+                                        for m, s in res.models.items()},
+                             "deadlines_ms": res.deadlines_ms})
+                print(f"{name:<20}{label:<12}{total:>4} robots  SLO-AT {100 * res.overall.slo_attainment:6.1f}%  "
+                      f"p99 {res.overall.p99_ms:7.1f} ms", flush=True)
+        for h in hosts.values():
+            h.close()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    meta = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit,
+            "device": torch.cuda.get_device_name(0) if device.startswith("cuda") else "cpu", "torch": torch.__version__,
+            "size": args.size, "hz": args.hz, "epochs": args.epochs, "duration_s": args.duration,
+            "command": "python bench/colocation.py " + " ".join(sys.argv[1:])}
+    return {"meta": meta, "rows": rows, "summary": summary(rows, args.experiment)}
+
+
+def summary(rows: list[dict], experiment: str) -> dict:
+    """E4: mean SLO miss ratio per engine and Monolithic / Robion; E5: mean SLO attainment per policy."""
+    by_engine: dict[str, list[float]] = {}
+    for r in rows:
+        by_engine.setdefault(r["engine"], []).append(r["miss_ratio"] if experiment == "e4" else r["slo_attainment"])
+    means = {e: sum(v) / len(v) for e, v in by_engine.items()}
+    if experiment == "e4":
+        ratio = means["monolithic"] / means["robion"] if means.get("robion") else float("inf")
+        return {"mean_miss_ratio": means, "monolithic_over_robion": ratio}
+    return {"mean_slo_attainment": means,
+            "esf_over_rr": means["esf"] / means["rr"] if means.get("rr") else float("inf"),
+            "esf_over_lqf": means["esf"] / means["lqf"] if means.get("lqf") else float("inf")}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("experiment", choices=["e4", "e5"])
+    p.add_argument("--scenarios", nargs="*", help="subset of the built-in scenarios")
+    p.add_argument("--size", default="full")
+    p.add_argument("--device", default="cuda:0")
+    p.add_argument("--robots", default="12,16,20", help="total robots on the GPU, split by the scenario's shares")
+    p.add_argument("--hz", type=float, default=2.0)
+    p.add_argument("--max-batch", type=int, default=2)
+    p.add_argument("--sm-table", default=None)
+    p.add_argument("--epochs", type=int, default=3)
+    p.add_argument("--duration", type=float, default=10.0)
+    p.add_argument("--deadline", type=float, default=156.0, help="deadline for architectures the paper has none for")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="")
+    args = p.parse_args(argv)
+    t0 = time.monotonic()
+    result = run(args)
+    result["meta"]["wall_s"] = round(time.monotonic() - t0, 1)
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump(result, fh, indent=2)
+    print(json.dumps(result["summary"], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,40 @@
+"""The co-location (E4) and queue-policy (E5) driver on the CPU with tiny models."""
+
+import json
+import os
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "bench"))
+
+from colocation import split  # noqa: E402
+
+
+def test_split_keeps_totals_and_proportions():
+    assert split(10, [3, 1]) == [8, 2]
+    assert split(7, [1, 1, 1, 1]) == [2, 2, 2, 1]
+    assert sum(split(13, [2, 1, 1])) == 13
+
+
+def run(tmp_path, *args):
+    out = tmp_path / "r.json"
+    res = subprocess.run([sys.executable, "bench/colocation.py", *args, "--size", "tiny", "--device", "cpu",
+                          "--epochs", "1", "--duration", "1", "--out", str(out)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return json.loads(out.read_text())
+
+
+def test_e4_runs_both_engines_on_the_same_workload(tmp_path):
+    r = run(tmp_path, "e4", "--scenarios", "skewed-2", "--robots", "4")
+    assert sorted(row["engine"] for row in r["rows"]) == ["monolithic", "robion"]
+    assert all(row["counts"] == [3, 1] for row in r["rows"])
+    assert set(r["summary"]["mean_miss_ratio"]) == {"robion", "monolithic"}
+
+
+def test_e5_policies_and_deadlines(tmp_path):
+    r = run(tmp_path, "e5", "--scenarios", "equal-deadlines", "--robots", "2")
+    assert sorted(row["engine"] for row in r["rows"]) == ["esf", "lqf", "rr"]
+    assert r["rows"][0]["deadlines_ms"] == {"pi0": 117.0, "xr0": 117.0}
+    assert {"esf_over_rr", "esf_over_lqf"} <= set(r["summary"])
