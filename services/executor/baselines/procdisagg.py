@@ -298,8 +298,10 @@ def _capture_step(ad, S: dict, n: int, stream, pool):
     view = ad.view(S, n)
     stream.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(stream):
-        for _ in range(2):  # warm-up (cuBLAS workspaces, autotuning)
+        for _ in range(2):  # warm-up (cuBLAS workspaces, autotuning); step indices kept in range
+            view["step"].zero_()
             ad.step(view, n)
+        view["step"].zero_()
     stream.synchronize()
     g = torch.cuda.CUDAGraph()
     with torch.cuda.graph(g, pool=pool, stream=stream):
