@@ -82,6 +82,14 @@ class EngineConfig:
     profile_repeats: int = field(default=5, metadata=_check(_positive, "expected a positive integer"))
     graphs: bool = True  # CUDA graphs per (model, stage, batch, SM level); false: eager stages (debugging)
     telemetry_file: str | None = None  # append one JSON line per lockstep
+    # Comparison engines (services/executor/baselines, docs/baselines.md):
+    disjoint_sms: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))
+    # disjoint: SMs of the VLM partition (a multiple of 8); 0: profiled at start-up and cached in profile_dir
+    running_batch: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))
+    # procdisagg: most requests in the action process's running batch; 0: 4 x max_batch
+    handoff_slots: int = field(default=4, metadata=_check(_positive, "expected a positive integer"))
+    # procdisagg: groups of max_batch handoff slots per model in the inter-stage buffer
+    procdisagg_workers: str = "process"  # procdisagg: stages as "process"es (CUDA IPC) or "thread"s (debugging)
 
 
 @dataclass
@@ -163,7 +171,8 @@ def dial_address(bind: str, connect: str | None = None) -> str:
 
 
 STRATEGIES = ("ip", "smg", "eps", "none")
-ENGINE_KINDS = ("monolithic", "robion")
+ENGINE_KINDS = ("monolithic", "robion", "disagg", "static", "disjoint", "procdisagg")  # ENGINES in engine.py
+PROCDISAGG_WORKERS = ("process", "thread")
 POLICIES = ("esf", "rr", "lqf")
 SM_POLICIES = ("table", "none", "static")
 NETWORKS = ("wifi7", "fast_cloud", "slow_cloud", "5g", "none")
@@ -277,6 +286,7 @@ def _validate(cfg: ClusterConfig) -> None:
         raise ConfigError(f"engine.sm_policy: expected one of {', '.join(SM_POLICIES)}, got {cfg.engine.sm_policy!r}")
     if cfg.engine.sm_policy == "static" and (cfg.engine.static_sms <= 0 or cfg.engine.static_sms % 8):
         raise ConfigError("engine.static_sms: sm_policy static needs a positive multiple of 8")
+    _validate_engine(cfg.engine)
     if cfg.control.strategy not in STRATEGIES:
         raise ConfigError(f"control.strategy: expected one of {', '.join(STRATEGIES)}, got {cfg.control.strategy!r}")
     if cfg.control.limits.network not in NETWORKS:
@@ -286,6 +296,19 @@ def _validate(cfg: ClusterConfig) -> None:
     for k, name in enumerate(cfg.fleet.models or []):
         if name not in seen:
             raise ConfigError(f"fleet.models[{k}]: no model named {name!r}")
+
+
+def _validate_engine(e: EngineConfig) -> None:
+    """Rules of the comparison engines' knobs (the generic checks ran while loading)."""
+    if e.kind == "static" and e.static_sms % 8:
+        raise ConfigError("engine.static_sms: engine static needs a multiple of 8 (0: half the SMs)")
+    if e.disjoint_sms % 8:
+        raise ConfigError("engine.disjoint_sms: expected a multiple of 8 (0: profiled at start-up)")
+    if e.running_batch and e.running_batch < e.max_batch:
+        raise ConfigError(f"engine.running_batch: must be at least max_batch ({e.max_batch}), or 0 for 4 x max_batch")
+    if e.procdisagg_workers not in PROCDISAGG_WORKERS:
+        raise ConfigError(f"engine.procdisagg_workers: expected one of {', '.join(PROCDISAGG_WORKERS)}, "
+                          f"got {e.procdisagg_workers!r}")
 
 
 def _expand_placement(data: Any) -> Any:

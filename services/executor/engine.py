@@ -76,13 +76,41 @@ class Engine:
 
 
 class MonolithicEngine(Engine):
-    """VLM then action stage as one pipeline on one stream, one batch at a time."""
+    """VLM then action stage as one pipeline on one stream, one batch at a time (the baseline).
+
+    On a GPU (``engine.graphs``, the default) it replays the same CUDA graphs as the lockstep
+    engine (``GraphStages``: one per model, stage and batch size, over the same static
+    buffers), back to back on one stream, so the comparison isolates the overlap of the two
+    stages. On the CPU (or with ``graphs: false``) the stages run eagerly. Noise is drawn at
+    submission like the lockstep engine's. Telemetry: one ``LockstepRecord`` per batch
+    (both stages of the same batch, run serially: overlap 0).
+    """
 
     def __init__(self, models, cfg, device, on_results):
         super().__init__(models, cfg, device, on_results)
+        from services.executor.telemetry import Telemetry
+
         self.stages = {name: EagerStages(m.model, device, seed=cfg.seed) for name, m in models.items()}
+        self.graphed: dict = {}  # name -> GraphStages on a GPU with graphs
+        self.telemetry = Telemetry(path=cfg.telemetry_file)
+        self._index = 0
+        self._noise_gens = {name: torch.Generator().manual_seed(cfg.seed) for name in models}
+        self._noise_lock = threading.Lock()
+        self._stream = None
+        self._events = None
+
+    def submit(self, req: Request) -> None:
+        gen = self._noise_gens.get(req.model)
+        if req.noise is None and gen is not None:
+            io = self.models[req.model].model.io
+            with self._noise_lock:
+                req.noise = torch.randn(io.horizon, io.action_dim, generator=gen).numpy()
+        self.queues.put(req)
 
     def prepare(self) -> None:
+        if self.device.type == "cuda" and self.cfg.graphs:
+            self._prepare_graphs()
+            return
         # One pass per batch size so allocator and kernel caches are warm before the first robot.
         b = 1
         while b <= self.cfg.max_batch:
@@ -91,28 +119,85 @@ class MonolithicEngine(Engine):
                 st.action(st.vlm(images, state, tokens), st.model.noise(b, self.device))
             b *= 2
 
+    def _prepare_graphs(self) -> None:
+        from services.executor.graphs import GraphPools, GraphStages
+
+        torch.cuda.set_device(self.device)
+        sizes = [1 << i for i in range(self.cfg.max_batch.bit_length()) if 1 << i <= self.cfg.max_batch]
+        self._stream = torch.cuda.Stream(self.device)
+        pools = GraphPools.create()
+        for name, m in self.models.items():
+            st = GraphStages(m.model, self.device, sizes, self.cfg.seed, pools, None, self._stream, self._stream)
+            st.allocate()
+            st.capture_action()
+            for b in sizes:
+                st.capture_vlm(b, {None})
+            self.graphed[name] = st
+        self._events = [torch.cuda.Event(enable_timing=True) for _ in range(3)]
+        torch.cuda.synchronize(self.device)
+
     def step(self) -> bool:
         model, batch, expired = self.queues.take(self.cfg.max_batch)
         self._report_expired(expired)
         if not batch:
             return bool(expired)
-        st = self.stages[model]
         admitted = time.monotonic()
         try:
-            images, state, tokens, noise = st.inputs(batch)
-            handoff = st.vlm(images, state, tokens)
-            _sync(self.device)
-            t_vlm = time.monotonic()
-            actions = st.action(handoff, noise).float().cpu().numpy()
-            t_act = time.monotonic()
+            if model in self.graphed:
+                actions, vlm_ms, act_ms = self._run_graphs(self.graphed[model], batch)
+                t_act = time.monotonic()
+                t_vlm = admitted + vlm_ms / 1e3
+            else:
+                st = self.stages[model]
+                images, state, tokens, noise = st.inputs(batch)
+                handoff = st.vlm(images, state, tokens)
+                _sync(self.device)
+                t_vlm = time.monotonic()
+                actions = st.action(handoff, noise).float().cpu().numpy()
+                t_act = time.monotonic()
+                vlm_ms, act_ms = (t_vlm - admitted) * 1e3, (t_act - t_vlm) * 1e3
         except Exception as exc:
             log.exception("batch of %d for %s failed", len(batch), model)
             self.on_results([Result(r, error=(ErrorCode.INTERNAL, f"inference failed: {type(exc).__name__}"))
                              for r in batch])
             return True
         self.on_results([Result(r, actions=actions[i], admitted=admitted, vlm_s=t_vlm - admitted,
-                                action_s=t_act - t_vlm, done=t_act) for i, r in enumerate(batch)])
+                                action_s=t_act - t_vlm, done=t_act, lockstep=self._index) for i, r in enumerate(batch)])
+        self._record(model, len(batch), admitted, vlm_ms, act_ms)
         return True
+
+    def _run_graphs(self, st, batch: list[Request]):
+        """Both stages' graphs back to back on the one stream; one wait at the end (CUDA events)."""
+        b = len(batch)
+        ev0, ev1, ev2 = self._events
+        st.stage(b, batch)
+        s = self._stream
+        with torch.cuda.stream(s):
+            ev0.record(s)
+            st.vlm(b, None)
+            ev1.record(s)
+            st.handoff(b)
+            st.action(b, 0)
+            ev2.record(s)
+        # While the GPU runs: copy the observations of the batch likely taken next (as the lockstep engine does).
+        nxt_model, nxt = self.queues.peek(self.cfg.max_batch)
+        if nxt and nxt_model in self.graphed:
+            self.graphed[nxt_model].prestage(len(nxt), nxt)
+        ev2.synchronize()
+        return st.result(b, 0).copy(), ev0.elapsed_time(ev1), ev1.elapsed_time(ev2)
+
+    def _record(self, model: str, b: int, start: float, vlm_ms: float, act_ms: float) -> None:
+        from services.executor.telemetry import LockstepRecord
+
+        arch = getattr(self.graphed.get(model), "arch", None) or self.models[model].model.arch
+        self.telemetry.add(LockstepRecord(index=self._index, start=start, vlm_model=model, vlm_arch=arch, vlm_batch=b,
+                                          action_model=model, action_arch=arch, action_batch=b, sm_level=None,
+                                          duration_ms=vlm_ms + act_ms, vlm_ms=vlm_ms, action_ms=act_ms))
+        self._index += 1
+
+    def finish(self) -> None:
+        super().finish()
+        self.telemetry.close()
 
 
 def _sync(device: torch.device) -> None:
@@ -120,12 +205,33 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-ENGINES: dict[str, type[Engine]] = {"monolithic": MonolithicEngine}
+# The one list of engine kinds (shared/config.ENGINE_KINDS mirrors its keys). A kind is its
+# class, or "module:Class" for engines built on this module (imported on first use: they
+# import this module, so they cannot be imported here).
+ENGINES: dict[str, type[Engine] | str] = {
+    "monolithic": MonolithicEngine,
+    "robion": "services.executor.lockstep:RobionEngine",
+    "disagg": "services.executor.baselines.lockstep_variants:DisaggEngine",
+    "static": "services.executor.baselines.lockstep_variants:StaticEngine",
+    "disjoint": "services.executor.baselines.lockstep_variants:DisjointEngine",
+    "procdisagg": "services.executor.baselines.procdisagg:ProcDisaggEngine",
+}
+
+
+def engine_class(kind: str) -> type[Engine]:
+    """The class behind ``engine.kind``, importing its module on first use."""
+    if kind not in ENGINES:
+        raise ValueError(f"engine {kind!r} is not available; available: {', '.join(ENGINES)}")
+    entry = ENGINES[kind]
+    if isinstance(entry, str):
+        import importlib
+
+        module, _, name = entry.partition(":")
+        cls = getattr(importlib.import_module(module), name)
+        # Importing the module may itself have registered the class (lockstep.py does).
+        ENGINES[kind] = entry = cls
+    return entry
 
 
 def make_engine(models: dict[str, ServedModel], cfg: EngineConfig, device: torch.device, on_results: ResultSink) -> Engine:
-    import services.executor.lockstep  # noqa: F401  (registers "robion"; imported late: it builds on this module)
-
-    if cfg.kind not in ENGINES:
-        raise ValueError(f"engine {cfg.kind!r} is not available; available: {', '.join(ENGINES)}")
-    return ENGINES[cfg.kind](models, cfg, device, on_results)
+    return engine_class(cfg.kind)(models, cfg, device, on_results)
