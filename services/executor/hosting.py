@@ -116,6 +116,9 @@ class EngineSlot:
             self._thread.join(timeout_s)
             if self._thread.is_alive():
                 log.error("engine thread did not stop within %.0f s", timeout_s)
+        close = getattr(engine, "close", None)
+        if close is not None:  # engines with worker processes (procdisagg) stop them here
+            close()
 
     def submit(self, req: Request) -> None:
         with self._lock:

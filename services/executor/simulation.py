@@ -363,7 +363,11 @@ class EngineHost:
         """Drop the engine (and its GPU memory)."""
         if self._engine is None:
             return
-        self._engine = None
+        engine, self._engine = self._engine, None
+        close = getattr(engine, "close", None)
+        if close is not None:  # engines with worker processes (procdisagg) stop them here
+            close()
+        del engine
         gc.collect()
         try:
             import torch
