@@ -37,6 +37,7 @@ def main() -> None:
     ap.add_argument("--sm-policy", default="none")
     ap.add_argument("--sm-table", default=None)
     ap.add_argument("--fixed-noise", action="store_true")
+    ap.add_argument("--ahead", action="store_true", help="launch-ahead on (off by default: time each launch phase in the gap)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     for mod in args.imports:
@@ -48,7 +49,8 @@ def main() -> None:
         models[f"m{i}-{arch}"] = build_model(arch, size or "full", seed=i, device=device)
     cfg = EngineConfig(kind="robion", max_batch=2, sm_policy=args.sm_policy, sm_table=args.sm_table,
                        max_queue=100000)
-    engine = LockstepEngine({n: ServedModel(n, m, 1.0) for n, m in models.items()}, cfg, device, lambda rs: None)
+    engine = LockstepEngine({n: ServedModel(n, m, 1.0) for n, m in models.items()}, cfg, device, lambda rs: None,
+                            launch_ahead=args.ahead)
     engine.prepare()
     n_req = 2 * args.locksteps + 8
     for i in range(n_req):
@@ -71,7 +73,7 @@ def main() -> None:
                 spent[label].append((time.perf_counter() - t0) * 1e6)
         setattr(obj, attr, wrapper)
 
-    for attr in ("begin", "launch_handoff", "launch_action", "launch_vlm", "end_launch", "wait"):
+    for attr in ("begin", "launch_handoff", "launch_action", "launch_vlm", "end_launch", "wait", "done"):
         timed(engine.runner, attr, f"runner.{attr}")
     timed(engine.queues, "take", "queues.take")
     for st in engine.stages.values():
@@ -89,6 +91,9 @@ def main() -> None:
     gpu = [r.gpu_gap_us for r in recs if r.gpu_gap_us is not None]
     rows["cpu_gap"] = {"median_us": float(np.median(cpu)), "p99_us": float(np.percentile(cpu, 99)), "n": len(cpu)}
     rows["gpu_gap"] = {"median_us": float(np.median(gpu)), "p99_us": float(np.percentile(gpu, 99)), "n": len(gpu)}
+    launch = [r.launch_us for r in recs if r.launch_us is not None]
+    rows["launch (decide+issue)"] = {"median_us": float(np.median(launch)), "p99_us": float(np.percentile(launch, 99)),
+                                     "n": len(launch)}
     # Host cost of single launches, each on an idle GPU.
     st = next(iter(engine.stages.values()))
     runner = engine.runner
