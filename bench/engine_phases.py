@@ -99,29 +99,45 @@ def main() -> None:
     runner = engine.runner
     probes = {
         "replay action graph b2": (runner.action_stream, lambda: st.action_graphs[2].replay()),
-        "replay VLM graph b2": (runner.vlm_stream, lambda: st.vlm_graphs[(2, next(lv for (b, lv) in st.vlm_graphs if b == 2))].replay()),
+        "replay VLM graph b2 (unrestricted)": (runner.vlm_stream, lambda: st.vlm_graphs[(2, None)].replay()),
+        "replay VLM graph b2 (green) on VLM stream": (None, None),
         "handoff copy b2": (runner.action_stream, lambda: st.handoff(2)),
+        "handoff copy b2 after VLM replay": (runner.action_stream, lambda: st.handoff(2)),
+        "replay VLM graph b2 on its green stream": (None, None),
         "D2H result b2": (runner.action_stream, lambda: st.host_out[2][0].copy_(st.dev_out[2], non_blocking=True)),
         "event record": (runner.action_stream, lambda: torch.cuda.Event().record(runner.action_stream)),
     }
+    green_level = next((lv for (b, lv) in st.vlm_graphs if b == 2 and lv is not None), None)
+    vkey = (2, green_level)
+    if green_level is not None:
+        probes["replay VLM graph b2 (green) on VLM stream"] = (runner.vlm_stream,
+                                                               lambda: st.vlm_graphs[(2, green_level)].replay())
+        probes["replay VLM graph b2 on its green stream"] = (engine.green.stream(green_level),
+                                                             lambda: st.vlm_graphs[(2, green_level)].replay())
+    else:
+        del probes["replay VLM graph b2 on its green stream"], probes["replay VLM graph b2 (green) on VLM stream"]
     for label, (stream, fn) in probes.items():
         costs = []
         for _ in range(60):
+            if "after VLM replay" in label:  # a green-context graph launched just before
+                torch.cuda.set_stream(runner.vlm_stream)
+                st.vlm_graphs[vkey].replay()
             torch.cuda.set_stream(stream)
             t0 = time.perf_counter()
             fn()
             costs.append((time.perf_counter() - t0) * 1e6)
             torch.cuda.set_stream(torch.cuda.default_stream())
             stream.synchronize()
+            runner.vlm_stream.synchronize()
         rows[label] = {"median_us": float(np.median(costs[10:])), "p99_us": float(np.percentile(costs[10:], 99)), "n": 50}
     rows["prestage hits/misses"] = {"median_us": float(sum(s.prestage_hits for s in engine.stages.values())),
                                     "p99_us": float(sum(s.prestage_misses for s in engine.stages.values())), "n": 0}
     if args.out:
         with open(args.out, "w") as f:
             json.dump(rows, f, indent=1)
-    print(f"{'phase':<24}{'median us':>12}{'p99 us':>12}")
+    print(f"{'phase':<44}{'median us':>12}{'p99 us':>12}")
     for k, v in rows.items():
-        print(f"{k:<24}{v['median_us']:>12.1f}{v['p99_us']:>12.1f}")
+        print(f"{k:<44}{v['median_us']:>12.1f}{v['p99_us']:>12.1f}")
 
 
 if __name__ == "__main__":

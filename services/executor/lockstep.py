@@ -275,6 +275,8 @@ class _Launched:
     ahead: bool = False  # issued while the previous lockstep still ran (its host cost hidden)
     lead_us: float | None = None  # how long before the previous lockstep's observed end it was issued
     admit_early_us: float | None = None  # how long before that end its batch was admitted
+    slack_us: float | None = None  # the launch-ahead slack in force when it was decided
+    wake_late_us: float | None = None  # how late the engine thread woke for it (sleep overshoot)
 
 
 def _combo_key(launch: _Launched) -> tuple:
@@ -290,7 +292,10 @@ def batch_sizes(max_batch: int) -> list[int]:
 class LockstepEngine(Engine):
     """The two-stream lockstep engine; the SM policy is what the comparison engines vary."""
 
-    LAUNCH_AHEAD_SLACK_US = 200.0  # wake this much before "predicted end - launch time"
+    LAUNCH_AHEAD_SLACK_US = 100.0  # least slack: wake this much before "predicted end - launch time"
+    AHEAD_SLACK_UP_US = 200.0  # added to the slack after a late launch-ahead
+    AHEAD_SLACK_DOWN_US = 5.0  # taken off after one in time
+    AHEAD_SLACK_MAX_US = 5000.0
     AHEAD_NAP_S = 0.0005  # longest sleep between checks of the running lockstep's end events
 
     def __init__(self, models: dict[str, ServedModel], cfg: EngineConfig, device: torch.device,
@@ -314,6 +319,7 @@ class LockstepEngine(Engine):
         self._durations: dict[tuple, float] = {}  # EMA of lockstep durations (ms) by (vlm, b, action, b, level)
         self._table_ms: dict[tuple, dict[str, float]] = {}  # profiled lockstep times, before an EMA exists
         self._launch_ema_us = 0.0  # EMA of the host time to decide and issue a lockstep
+        self._slack_us = self.launch_ahead_slack_us  # adapted between the floor and AHEAD_SLACK_MAX_US
         self.ahead_missed = 0  # locksteps that ended before the engine woke to launch the next one
         self.batch_sizes = batch_sizes(cfg.max_batch)
         self.sm_policy = sm_policy
@@ -578,27 +584,44 @@ class LockstepEngine(Engine):
     def _launch_next(self, cur: _Launched) -> tuple[_Launched | None, list[Request]]:
         """Launch-ahead: shortly before ``cur`` is predicted to end, decide and issue the next
         lockstep behind ``cur``'s end events. Returns (None, []) when the prediction is unknown
-        or ``cur`` has ended already: the next lockstep is then decided after the end."""
+        or ``cur`` has ended already: the next lockstep is then decided after the end.
+
+        The wake-up comes ``launch EMA + slack`` before the predicted end. The slack adapts: a
+        launch that the end overtook raises it by ``AHEAD_SLACK_UP_US``, a launch in time lowers
+        it by ``AHEAD_SLACK_DOWN_US`` down to ``launch_ahead_slack_us`` (the floor), so about
+        one launch in (up/down + 1) is late at equilibrium and the admission point moves no
+        earlier than the host's timing noise needs."""
         runner = self.runner
+        woke = wake = None
         if runner.asynchronous:
             end = self._predict_end(cur)
             if end is None:
                 return None, []
-            wake = end - (self._launch_ema_us + self.launch_ahead_slack_us) * 1e-6
+            wake = end - (self._launch_ema_us + self._slack_us) * 1e-6
             # Sleep (releasing the GIL) in short naps, checking the events between them, so a
             # lockstep shorter than predicted leaves the GPU idle for at most about one nap.
             while True:
                 if runner.done(cur.index):
                     self.ahead_missed += 1
+                    self._slack_us = min(self._slack_us + self.AHEAD_SLACK_UP_US, self.AHEAD_SLACK_MAX_US)
                     return None, []
-                delay = wake - time.perf_counter()
+                now = time.perf_counter()
+                delay = wake - now
                 if delay <= 20e-6:
+                    woke = now
                     break
                 time.sleep(min(delay, self.AHEAD_NAP_S))
         nxt, expired = self._launch(True, cur)
         if nxt is not None:
             us = (nxt.issued - nxt.decided) * 1e6
             self._launch_ema_us = us if self._launch_ema_us == 0.0 else 0.9 * self._launch_ema_us + 0.1 * us
+            nxt.slack_us = self._slack_us
+            if woke is not None:
+                nxt.wake_late_us = (woke - wake) * 1e6
+            if nxt.ahead:
+                self._slack_us = max(self._slack_us - self.AHEAD_SLACK_DOWN_US, self.launch_ahead_slack_us)
+            else:
+                self._slack_us = min(self._slack_us + self.AHEAD_SLACK_UP_US, self.AHEAD_SLACK_MAX_US)
         return nxt, expired
 
     def _predict_end(self, cur: _Launched) -> float | None:
@@ -646,7 +669,7 @@ class LockstepEngine(Engine):
             action_batch=act.b if act else 0, sm_level=done.level, duration_ms=t.duration_ms, vlm_ms=t.vlm_ms,
             action_ms=t.action_ms, cpu_gap_us=done.cpu_gap_us, gpu_gap_us=t.gap_us, gpu_gap_last_us=t.gap_last_us,
             launch_us=(done.issued - done.decided) * 1e6, ahead=done.ahead, lead_us=done.lead_us,
-            admit_early_us=done.admit_early_us))
+            admit_early_us=done.admit_early_us, slack_us=done.slack_us, wake_late_us=done.wake_late_us))
 
     def _emit(self, results: list[Result]) -> None:
         try:

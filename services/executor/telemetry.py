@@ -54,6 +54,9 @@ class LockstepRecord:
     # admission point's shift that launch-ahead costs).
     lead_us: float | None = None
     admit_early_us: float | None = None
+    # The launch-ahead slack in force when it was decided, and how late the engine woke for it.
+    slack_us: float | None = None
+    wake_late_us: float | None = None
 
     @property
     def overlap_ms(self) -> float:
@@ -132,5 +135,7 @@ def summarize(records: list[LockstepRecord]) -> dict:
         "back_to_back": len(b2b),
         "lead_us": _stats([r.lead_us for r in records if r.lead_us is not None]),
         "admit_early_us": _stats([r.admit_early_us for r in records if r.admit_early_us is not None]),
+        "slack_us": _stats([r.slack_us for r in records if r.slack_us is not None]),
+        "wake_late_us": _stats([r.wake_late_us for r in records if r.wake_late_us is not None]),
         "sm_levels": sorted({str(r.sm_level) for r in records if r.vlm_batch}),
     }

@@ -200,12 +200,11 @@ def test_launch_ahead_under_load_is_correct_and_hides_the_launch():
     the previous one's end events), replies still equal eager, and the device idles between
     locksteps for less than the host takes to issue one."""
     h = build_model("heavytoy", "full", seed=6, device=DEV)
-    toy = build_model("toy", "full", seed=7, device=DEV)
-    models = {"h": h, "toy": toy}
+    models = {"h": h}
     eng, results = _engine(models, EngineConfig(kind="robion", max_batch=2),
                            TableLevel({("heavytoy:full", 2, "heavytoy:full", 2): 96}))
     assert eng._launch_ahead
-    reqs = _requests(h, "h", 40, 8) + _requests(toy, "toy", 20, 9)
+    reqs = _requests(h, "h", 60, 8)
     for r in reqs:  # all queued before the engine starts: saturating
         eng.submit(r)
     stop = threading.Event()
