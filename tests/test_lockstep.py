@@ -491,3 +491,24 @@ def test_host_runner_vlm_reads_the_slot_staged_at_launch():
     np.testing.assert_array_equal(st.dev_in[1].views["images"][0].numpy(), a.images)
     runner.wait(1)
     np.testing.assert_array_equal(st.dev_in[1].views["images"][0].numpy(), b.images)
+
+
+def test_launch_ahead_vlm_part_decided_after_the_end():
+    """The action part of lockstep k+1 goes ahead at once; when the engine cannot predict k's
+    end, the admission decision and VLM part of k+1 come after k's end. Same locksteps, same replies."""
+    model = build_model("toy", seed=1)
+    eng, sink = ahead_engine({"toy": (model, 1.0)}, max_batch=2)
+    eng.runner.asynchronous = True  # take the GPU path of the loop...
+    eng._predict_end = lambda cur: None  # ...with no prediction: every VLM part is decided late
+    rng = np.random.default_rng(13)
+    reqs = [make_req(model, str(i), rng) for i in range(5)]
+    for r in reqs:
+        r.model = "toy"
+        eng.submit(r)
+    drive(eng)
+    recs = eng.telemetry.records()
+    assert [(r.vlm_batch, r.action_batch) for r in recs] == [(2, 0), (2, 2), (1, 2), (0, 1)]
+    assert not any(r.ahead for r in recs) and all(r.cpu_gap_us is not None for r in recs[1:])
+    assert sorted(r.request.id for r in sink.results) == [str(i) for i in range(5)]
+    for res in sink.results:
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)

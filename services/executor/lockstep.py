@@ -276,6 +276,8 @@ class _Launched:
     lead_us: float | None = None  # how long before the previous lockstep's observed end it was issued
     admit_early_us: float | None = None  # how long before that end its batch was admitted
     slack_us: float | None = None  # the launch-ahead slack in force when it was decided
+    vlm_open: bool = False  # action part issued ahead, VLM part (the admission decision) still to come
+    launch_us: float = 0.0  # host time of all its launch parts
     wake_late_us: float | None = None  # how late the engine thread woke for it (sleep overshoot)
 
 
@@ -293,7 +295,7 @@ class LockstepEngine(Engine):
     """The two-stream lockstep engine; the SM policy is what the comparison engines vary."""
 
     LAUNCH_AHEAD_SLACK_US = 100.0  # least slack: wake this much before "predicted end - launch time"
-    AHEAD_SLACK_UP_US = 200.0  # added to the slack after a late launch-ahead
+    AHEAD_SLACK_UP_US = 50.0  # added to the slack after a late launch-ahead
     AHEAD_SLACK_DOWN_US = 5.0  # taken off after one in time
     AHEAD_SLACK_MAX_US = 5000.0
     AHEAD_NAP_S = 0.0005  # longest sleep between checks of the running lockstep's end events
@@ -488,6 +490,8 @@ class LockstepEngine(Engine):
                 self._report_expired(expired)
                 self._back_to_back = False
                 return bool(expired)
+        elif cur.vlm_open:  # its action part went ahead; its VLM part was not decided before the end
+            expired = self._decide_vlm(cur, admit, None)
         if admit:
             self._prestage()
         self._book()  # the previous lockstep's replies and telemetry, while this one runs
@@ -513,7 +517,7 @@ class LockstepEngine(Engine):
             cur.vlm.vlm_end = cur.end
         if nxt is not None:
             nxt.gpu_start = end  # it was waiting on this end
-            if nxt.ahead:
+            if nxt.ahead and not nxt.vlm_open:
                 nxt.lead_us = (end - nxt.issued) * 1e6
                 nxt.admit_early_us = (end - nxt.decided) * 1e6
         self._ahead = nxt
@@ -566,7 +570,7 @@ class LockstepEngine(Engine):
             raise
         issued = time.perf_counter()
         launch = _Launched(index, time.monotonic(), vlm, act, index & 1, level, None, self._back_to_back,
-                           decided=decided, issued=issued, gpu_start=decided)
+                           decided=decided, issued=issued, gpu_start=decided, launch_us=(issued - decided) * 1e6)
         if after is None:
             if self._back_to_back:  # host time on the critical path: the GPU idled for all of it
                 launch.cpu_gap_us = (issued - self._last_end) * 1e6
@@ -582,21 +586,26 @@ class LockstepEngine(Engine):
         return launch, expired
 
     def _launch_next(self, cur: _Launched) -> tuple[_Launched | None, list[Request]]:
-        """Launch-ahead: shortly before ``cur`` is predicted to end, decide and issue the next
-        lockstep behind ``cur``'s end events. Returns (None, []) when the prediction is unknown
-        or ``cur`` has ended already: the next lockstep is then decided after the end.
+        """Launch-ahead of the lockstep after ``cur``, gated on ``cur``'s end events, in two parts.
 
-        The wake-up comes ``launch EMA + slack`` before the predicted end. The slack adapts: a
-        launch that the end overtook raises it by ``AHEAD_SLACK_UP_US``, a launch in time lowers
-        it by ``AHEAD_SLACK_DOWN_US`` down to ``launch_ahead_slack_us`` (the floor), so about
-        one launch in (up/down + 1) is late at equilibrium and the admission point moves no
-        earlier than the host's timing noise needs."""
+        1. At once (``cur`` has just started): the action part, which needs no decision (it is
+           the batch whose VLM stage ``cur`` runs): handoff copy, action graph, output copy.
+        2. Shortly before ``cur`` is predicted to end: the admission decision (scheduler pick,
+           SM level) and the VLM part. Only this part's host time sits between the decision
+           and ``cur``'s end, so only it delays admission.
+
+        The wake-up comes ``VLM-part launch EMA + slack`` before the predicted end. The slack
+        adapts: a VLM part that ``cur``'s end overtook raises it by ``AHEAD_SLACK_UP_US``, one
+        in time lowers it by ``AHEAD_SLACK_DOWN_US`` down to ``launch_ahead_slack_us``, so
+        about one in (up/down + 1) is late at equilibrium. Without a prediction, or when
+        ``cur`` ends first, the VLM part is decided after the end (part 1 still ran ahead)."""
         runner = self.runner
+        nxt = self._issue_action_ahead(cur) if self._pending is not None else None
         woke = wake = None
         if runner.asynchronous:
             end = self._predict_end(cur)
             if end is None:
-                return None, []
+                return nxt, []
             wake = end - (self._launch_ema_us + self._slack_us) * 1e-6
             # Sleep (releasing the GIL) in short naps, checking the events between them, so a
             # lockstep shorter than predicted leaves the GPU idle for at most about one nap.
@@ -604,25 +613,89 @@ class LockstepEngine(Engine):
                 if runner.done(cur.index):
                     self.ahead_missed += 1
                     self._slack_us = min(self._slack_us + self.AHEAD_SLACK_UP_US, self.AHEAD_SLACK_MAX_US)
-                    return None, []
+                    return nxt, []
                 now = time.perf_counter()
                 delay = wake - now
                 if delay <= 20e-6:
                     woke = now
                     break
                 time.sleep(min(delay, self.AHEAD_NAP_S))
-        nxt, expired = self._launch(True, cur)
-        if nxt is not None:
-            us = (nxt.issued - nxt.decided) * 1e6
-            self._launch_ema_us = us if self._launch_ema_us == 0.0 else 0.9 * self._launch_ema_us + 0.1 * us
-            nxt.slack_us = self._slack_us
-            if woke is not None:
-                nxt.wake_late_us = (woke - wake) * 1e6
-            if nxt.ahead:
-                self._slack_us = max(self._slack_us - self.AHEAD_SLACK_DOWN_US, self.launch_ahead_slack_us)
-            else:
-                self._slack_us = min(self._slack_us + self.AHEAD_SLACK_UP_US, self.AHEAD_SLACK_MAX_US)
+        if nxt is None:
+            nxt, expired = self._launch(True, cur)
+            if nxt is None:
+                return None, expired
+            part_us = nxt.launch_us
+        else:
+            expired = self._decide_vlm(nxt, True, cur)
+            part_us = (nxt.issued - nxt.decided) * 1e6
+        self._launch_ema_us = part_us if self._launch_ema_us == 0.0 else 0.9 * self._launch_ema_us + 0.1 * part_us
+        nxt.slack_us = self._slack_us
+        if woke is not None:
+            nxt.wake_late_us = (woke - wake) * 1e6
+        if nxt.ahead:
+            self._slack_us = max(self._slack_us - self.AHEAD_SLACK_DOWN_US, self.launch_ahead_slack_us)
+        else:
+            self._slack_us = min(self._slack_us + self.AHEAD_SLACK_UP_US, self.AHEAD_SLACK_MAX_US)
         return nxt, expired
+
+    def _issue_action_ahead(self, cur: _Launched) -> _Launched | None:
+        """Part 1 of launch-ahead: lockstep ``self._index``'s action part, behind ``cur``'s end."""
+        runner = self.runner
+        act, index = self._pending, self._index
+        t0 = time.perf_counter()
+        try:
+            runner.begin(index, cur.index)
+            runner.launch_handoff(act.stages, act.b)
+            runner.launch_action(act.stages, act.b, index & 1)
+        except Exception as exc:
+            runner.end_launch()
+            self._pending = None
+            log.exception("issuing lockstep %d's action stage ahead failed", index)
+            self._fail([act], exc)
+            return None
+        runner.end_launch()
+        t1 = time.perf_counter()
+        self._index += 1
+        self._pending = None
+        return _Launched(index, time.monotonic(), None, act, index & 1, None, None, True, decided=t1, issued=t1,
+                         gpu_start=t1, vlm_open=True, launch_us=(t1 - t0) * 1e6)
+
+    def _decide_vlm(self, launch: _Launched, admit: bool, after: _Launched | None) -> list[Request]:
+        """Part 2: admit the VLM batch of ``launch`` (whose action part is issued) and issue it.
+        ``after``: the lockstep still running (launch-ahead), or None once its end was observed."""
+        runner = self.runner
+        act = launch.act
+        decided = time.perf_counter()
+        vlm, level, expired = None, None, []
+        try:
+            if admit:
+                model, reqs, expired = self.queues.take(self.cfg.max_batch)
+                if reqs:
+                    vlm = _Batch(model, self.stages[model], reqs, time.monotonic(), launch.index)
+            if vlm is not None:
+                level = self.sm_policy.level(vlm.stages.arch, vlm.b, act.stages.arch, act.b)
+                vlm.stages.stage(vlm.b, vlm.requests)
+                runner.launch_vlm(vlm.stages, vlm.b, level, after_handoff=act.stages is vlm.stages and act.b == vlm.b)
+        except Exception as exc:  # the action part runs on; only this batch fails
+            log.exception("issuing lockstep %d's VLM stage failed", launch.index)
+            if vlm is not None:
+                self._fail([vlm], exc)
+            vlm, level = None, None
+        finally:
+            runner.end_launch()
+        issued = time.perf_counter()
+        launch.vlm, launch.level, launch.vlm_open = vlm, level, False
+        launch.decided, launch.issued = decided, issued
+        launch.launch_us += (issued - decided) * 1e6
+        self._pending = vlm
+        if after is None:
+            launch.ahead = False
+            if self._back_to_back:  # the VLM part waited for the host after the end was seen
+                launch.cpu_gap_us = (issued - self._last_end) * 1e6
+        else:
+            launch.ahead = not runner.done(after.index)
+            launch.cpu_gap_us = 0.0 if launch.ahead else (issued - decided) * 1e6
+        return expired
 
     def _predict_end(self, cur: _Launched) -> float | None:
         """perf_counter() time at which ``cur`` should end: its start on the GPU (the previous
@@ -668,7 +741,7 @@ class LockstepEngine(Engine):
             action_model=act.model if act else None, action_arch=act.stages.arch if act else None,
             action_batch=act.b if act else 0, sm_level=done.level, duration_ms=t.duration_ms, vlm_ms=t.vlm_ms,
             action_ms=t.action_ms, cpu_gap_us=done.cpu_gap_us, gpu_gap_us=t.gap_us, gpu_gap_last_us=t.gap_last_us,
-            launch_us=(done.issued - done.decided) * 1e6, ahead=done.ahead, lead_us=done.lead_us,
+            launch_us=done.launch_us, ahead=done.ahead, lead_us=done.lead_us,
             admit_early_us=done.admit_early_us, slack_us=done.slack_us, wake_late_us=done.wake_late_us))
 
     def _emit(self, results: list[Result]) -> None:
