@@ -569,6 +569,7 @@ class LockstepEngine(Engine):
             self._fail([b for b in (act, vlm) if b is not None], exc)
             raise
         issued = time.perf_counter()
+        self._note_launch((issued - decided) * 1e6)
         launch = _Launched(index, time.monotonic(), vlm, act, index & 1, level, None, self._back_to_back,
                            decided=decided, issued=issued, gpu_start=decided, launch_us=(issued - decided) * 1e6)
         if after is None:
@@ -624,11 +625,8 @@ class LockstepEngine(Engine):
             nxt, expired = self._launch(True, cur)
             if nxt is None:
                 return None, expired
-            part_us = nxt.launch_us
         else:
             expired = self._decide_vlm(nxt, True, cur)
-            part_us = (nxt.issued - nxt.decided) * 1e6
-        self._launch_ema_us = part_us if self._launch_ema_us == 0.0 else 0.9 * self._launch_ema_us + 0.1 * part_us
         nxt.slack_us = self._slack_us
         if woke is not None:
             nxt.wake_late_us = (woke - wake) * 1e6
@@ -637,6 +635,12 @@ class LockstepEngine(Engine):
         else:
             self._slack_us = min(self._slack_us + self.AHEAD_SLACK_UP_US, self.AHEAD_SLACK_MAX_US)
         return nxt, expired
+
+    def _note_launch(self, us: float) -> None:
+        """EMA of the host time from an admission decision to its lockstep's (VLM part's) issue,
+        fed by every launch (whole launches, made when nothing went ahead, are the longer kind:
+        a conservative start)."""
+        self._launch_ema_us = us if self._launch_ema_us == 0.0 else 0.9 * self._launch_ema_us + 0.1 * us
 
     def _issue_action_ahead(self, cur: _Launched) -> _Launched | None:
         """Part 1 of launch-ahead: lockstep ``self._index``'s action part, behind ``cur``'s end."""
@@ -687,6 +691,7 @@ class LockstepEngine(Engine):
         launch.vlm, launch.level, launch.vlm_open = vlm, level, False
         launch.decided, launch.issued = decided, issued
         launch.launch_us += (issued - decided) * 1e6
+        self._note_launch((issued - decided) * 1e6)
         self._pending = vlm
         if after is None:
             launch.ahead = False
