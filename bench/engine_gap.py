@@ -6,11 +6,16 @@ device-side gap (last kernel of one lockstep -> first kernel of the next, CUDA e
 median and p99, plus lockstep durations and stage overlap.
 
     python bench/engine_gap.py --models heavytoy:full --import bench.models --seconds 10 --out gap.json
+    python bench/engine_gap.py --models pi0:full --sm-table bench/results/sm_table_h100_zoo.json --ahead off,on
+
+``--ahead`` runs several engines one after the other over the same models (launch-ahead off,
+on, or with a given slack in us); ``--rate`` replaces the saturating load by open-loop arrivals.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import json
 import logging
@@ -54,6 +59,11 @@ def main() -> None:
     ap.add_argument("--depth", type=int, default=8, help="pending requests kept per model")
     ap.add_argument("--out", default=None)
     ap.add_argument("--telemetry", default=None, help="also write per-lockstep JSONL here")
+    ap.add_argument("--ahead", default="on",
+                    help="comma-separated engine runs over the same models: off (no launch-ahead), on (default "
+                         "slack), or a slack in us (e.g. off,100,200,400)")
+    ap.add_argument("--rate", type=float, default=0.0,
+                    help="open-loop Poisson arrivals, requests/s per model (0: keep --depth requests queued)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for mod in args.imports:
@@ -64,19 +74,52 @@ def main() -> None:
     for i, spec in enumerate(args.models.split(",")):
         arch, _, size = spec.partition(":")
         models[f"m{i}-{arch}"] = build_model(arch, size or "full", seed=i, device=device)
+    runs = []
+    for variant in args.ahead.split(","):
+        runs.append(measure(args, models, device, variant.strip()))
+        gc.collect()
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    out = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+           "torch": torch.__version__, "models": args.models, "max_batch": args.max_batch,
+           "sm_policy": args.sm_policy, "rate": args.rate, "runs": runs}
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(out, f, indent=1)
+    fmt = lambda v: "-" if v is None else f"{v:.0f}"  # noqa: E731
+    load = f"Poisson {args.rate:g} req/s per model" if args.rate else f"saturating (depth {args.depth})"
+    print(f"\n{args.models} | policy {args.sm_policy} | {load} | {out['device']}")
+    print(f"{'launch-ahead':<13}{'steps':>6}{'req/s':>7}{'host gap med/p99':>18}{'GPU idle med/p99':>18}"
+          f"{'later stage':>12}{'launch':>8}{'ahead':>11}{'admit early med/p99':>21}{'overlap':>9}")
+    for r in runs:
+        s = r["summary"]
+        cg, gg, gl, lu, ae = s["cpu_gap_us"], s["gpu_gap_us"], s["gpu_gap_last_us"], s["launch_us"], s["admit_early_us"]
+        print(f"{r['ahead']:<13}{s['locksteps']:>6}{r['requests_per_s']:>7.0f}"
+              f"{fmt(cg['median']) + ' / ' + fmt(cg['p99']):>18}{fmt(gg['median']) + ' / ' + fmt(gg['p99']):>18}"
+              f"{fmt(gl['median']):>12}{fmt(lu['median']):>8}{str(s['ahead']) + '/' + str(s['back_to_back']):>11}"
+              f"{fmt(ae['median']) + ' / ' + fmt(ae['p99']):>21}{str(s['overlapping']) + '/' + str(s['co_running']):>9}")
+
+
+def measure(args, models: dict, device: torch.device, variant: str) -> dict:
+    """One engine over ``models`` with launch-ahead ``variant`` (off, on, or a slack in us), under load."""
+    ahead = variant != "off"
+    slack = float(variant) if variant not in ("on", "off") else None
     cfg = EngineConfig(kind="robion", max_batch=args.max_batch, sm_policy=args.sm_policy, static_sms=args.static_sms,
-                       sm_table=args.sm_table, profile_dir=args.profile_dir, telemetry_file=args.telemetry)
+                       sm_table=args.sm_table, profile_dir=args.profile_dir, telemetry_file=args.telemetry,
+                       max_queue=100000)
     served = {name: ServedModel(name, m, 1.0) for name, m in models.items()}
     answered = [0]
 
     def sink(results):
         answered[0] += len(results)
 
-    engine = LockstepEngine(served, cfg, device, sink)
+    engine = LockstepEngine(served, cfg, device, sink, launch_ahead=ahead, launch_ahead_slack_us=slack)
     t0 = time.perf_counter()
     engine.prepare()
     prepare_s = time.perf_counter() - t0
     pools = {name: payloads(m, 16, i) for i, (name, m) in enumerate(models.items())}
+    rng = np.random.default_rng(0)
+    next_arrival = {name: time.monotonic() for name in models}
 
     stop = threading.Event()
     loop = threading.Thread(target=engine.run, args=(stop,))
@@ -89,9 +132,17 @@ def main() -> None:
         if not cleared and time.monotonic() >= warm_end:
             engine.telemetry.clear()
             answered0, cleared, t_meas = answered[0], True, time.monotonic()
-        depths = engine.queues.depths()
-        for name, depth in depths.items():
-            for _ in range(args.depth - depth):
+        now = time.monotonic()
+        if args.rate:
+            due = {}
+            for name in models:
+                while next_arrival[name] <= now:
+                    due[name] = due.get(name, 0) + 1
+                    next_arrival[name] += rng.exponential(1.0 / args.rate)
+        else:
+            due = {name: args.depth - depth for name, depth in engine.queues.depths().items()}
+        for name, n in due.items():
+            for _ in range(n):
                 img, state, tok = pools[name][sent % 16]
                 now = time.monotonic()
                 engine.submit(Request(id=str(sent), robot="bench", model=name, images=img, state=state, tokens=tok,
@@ -107,30 +158,17 @@ def main() -> None:
     summary = summarize(records)
     by_pair: dict[str, list[float]] = defaultdict(list)
     for r in records:
-        by_pair[f"{r.vlm_batch}|{r.action_batch}|{r.sm_level}"].append(r.duration_ms)
-    out = {
-        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-        "torch": torch.__version__, "models": args.models, "max_batch": args.max_batch, "sm_policy": args.sm_policy,
+        by_pair[f"{r.vlm_arch}:{r.vlm_batch}|{r.action_arch}:{r.action_batch}|{r.sm_level}"].append(r.duration_ms)
+    run = {
+        "ahead": variant if variant != "on" else f"on ({engine.launch_ahead_slack_us:g})",
+        "launch_ahead": engine._launch_ahead, "slack_us": engine.launch_ahead_slack_us, "missed": engine.ahead_missed,
         "seconds": elapsed, "requests_per_s": served_n / elapsed, "prepare_s": prepare_s,
         "prepare_breakdown_s": engine.prepare_s, "summary": summary,
-        "durations_ms": {k: {"n": len(v), "mean": float(np.mean(v))} for k, v in sorted(by_pair.items())},
-        "table_profile_s": engine.table.profile_s if engine.table else None,
+        "durations_ms": {k: {"n": len(v), "mean": float(np.mean(v)), "std": float(np.std(v))}
+                         for k, v in sorted(by_pair.items())},
     }
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(out, f, indent=1)
-    cg, gg = summary["cpu_gap_us"], summary["gpu_gap_us"]
-    fmt = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
-    print(f"\n{args.models} | policy {args.sm_policy} | {summary['locksteps']} locksteps in {elapsed:.1f} s | "
-          f"{out['requests_per_s']:.1f} req/s")
-    print(f"{'metric':<28}{'median':>10}{'p99':>10}{'n':>8}")
-    print(f"{'CPU gap (us)':<28}{fmt(cg['median']):>10}{fmt(cg['p99']):>10}{cg['n']:>8}")
-    print(f"{'GPU idle gap (us)':<28}{fmt(gg['median']):>10}{fmt(gg['p99']):>10}{gg['n']:>8}")
-    print(f"overlapping locksteps: {summary['overlapping']}/{summary['co_running']}, "
-          f"mean overlap {fmt(summary['mean_overlap_ms'])} ms, mean lockstep {fmt(summary['mean_duration_ms'])} ms")
-    for k, v in out["durations_ms"].items():
-        print(f"  vlm|action|SMs {k:<16} n={v['n']:<6} mean {v['mean']:.2f} ms")
-
+    del engine
+    return run
 
 if __name__ == "__main__":
     main()

@@ -37,6 +37,7 @@ def main() -> None:
     ap.add_argument("--sm-policy", default="none")
     ap.add_argument("--sm-table", default=None)
     ap.add_argument("--fixed-noise", action="store_true")
+    ap.add_argument("--ahead", action="store_true", help="launch-ahead on (off by default: time each launch phase in the gap)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     for mod in args.imports:
@@ -48,7 +49,8 @@ def main() -> None:
         models[f"m{i}-{arch}"] = build_model(arch, size or "full", seed=i, device=device)
     cfg = EngineConfig(kind="robion", max_batch=2, sm_policy=args.sm_policy, sm_table=args.sm_table,
                        max_queue=100000)
-    engine = LockstepEngine({n: ServedModel(n, m, 1.0) for n, m in models.items()}, cfg, device, lambda rs: None)
+    engine = LockstepEngine({n: ServedModel(n, m, 1.0) for n, m in models.items()}, cfg, device, lambda rs: None,
+                            launch_ahead=args.ahead)
     engine.prepare()
     n_req = 2 * args.locksteps + 8
     for i in range(n_req):
@@ -71,7 +73,7 @@ def main() -> None:
                 spent[label].append((time.perf_counter() - t0) * 1e6)
         setattr(obj, attr, wrapper)
 
-    for attr in ("begin", "launch_handoff", "launch_action", "launch_vlm", "end_launch", "wait"):
+    for attr in ("begin", "launch_handoff", "launch_action", "launch_vlm", "end_launch", "wait", "done"):
         timed(engine.runner, attr, f"runner.{attr}")
     timed(engine.queues, "take", "queues.take")
     for st in engine.stages.values():
@@ -89,34 +91,53 @@ def main() -> None:
     gpu = [r.gpu_gap_us for r in recs if r.gpu_gap_us is not None]
     rows["cpu_gap"] = {"median_us": float(np.median(cpu)), "p99_us": float(np.percentile(cpu, 99)), "n": len(cpu)}
     rows["gpu_gap"] = {"median_us": float(np.median(gpu)), "p99_us": float(np.percentile(gpu, 99)), "n": len(gpu)}
+    launch = [r.launch_us for r in recs if r.launch_us is not None]
+    rows["launch (decide+issue)"] = {"median_us": float(np.median(launch)), "p99_us": float(np.percentile(launch, 99)),
+                                     "n": len(launch)}
     # Host cost of single launches, each on an idle GPU.
     st = next(iter(engine.stages.values()))
     runner = engine.runner
     probes = {
         "replay action graph b2": (runner.action_stream, lambda: st.action_graphs[2].replay()),
-        "replay VLM graph b2": (runner.vlm_stream, lambda: st.vlm_graphs[(2, next(lv for (b, lv) in st.vlm_graphs if b == 2))].replay()),
+        "replay VLM graph b2 (unrestricted)": (runner.vlm_stream, lambda: st.vlm_graphs[(2, None)].replay()),
+        "replay VLM graph b2 (green) on VLM stream": (None, None),
         "handoff copy b2": (runner.action_stream, lambda: st.handoff(2)),
+        "handoff copy b2 after VLM replay": (runner.action_stream, lambda: st.handoff(2)),
+        "replay VLM graph b2 on its green stream": (None, None),
         "D2H result b2": (runner.action_stream, lambda: st.host_out[2][0].copy_(st.dev_out[2], non_blocking=True)),
         "event record": (runner.action_stream, lambda: torch.cuda.Event().record(runner.action_stream)),
     }
+    green_level = next((lv for (b, lv) in st.vlm_graphs if b == 2 and lv is not None), None)
+    vkey = (2, green_level)
+    if green_level is not None:
+        probes["replay VLM graph b2 (green) on VLM stream"] = (runner.vlm_stream,
+                                                               lambda: st.vlm_graphs[(2, green_level)].replay())
+        probes["replay VLM graph b2 on its green stream"] = (engine.green.stream(green_level),
+                                                             lambda: st.vlm_graphs[(2, green_level)].replay())
+    else:
+        del probes["replay VLM graph b2 on its green stream"], probes["replay VLM graph b2 (green) on VLM stream"]
     for label, (stream, fn) in probes.items():
         costs = []
         for _ in range(60):
+            if "after VLM replay" in label:  # a green-context graph launched just before
+                torch.cuda.set_stream(runner.vlm_stream)
+                st.vlm_graphs[vkey].replay()
             torch.cuda.set_stream(stream)
             t0 = time.perf_counter()
             fn()
             costs.append((time.perf_counter() - t0) * 1e6)
             torch.cuda.set_stream(torch.cuda.default_stream())
             stream.synchronize()
+            runner.vlm_stream.synchronize()
         rows[label] = {"median_us": float(np.median(costs[10:])), "p99_us": float(np.percentile(costs[10:], 99)), "n": 50}
     rows["prestage hits/misses"] = {"median_us": float(sum(s.prestage_hits for s in engine.stages.values())),
                                     "p99_us": float(sum(s.prestage_misses for s in engine.stages.values())), "n": 0}
     if args.out:
         with open(args.out, "w") as f:
             json.dump(rows, f, indent=1)
-    print(f"{'phase':<24}{'median us':>12}{'p99 us':>12}")
+    print(f"{'phase':<44}{'median us':>12}{'p99 us':>12}")
     for k, v in rows.items():
-        print(f"{k:<24}{v['median_us']:>12.1f}{v['p99_us']:>12.1f}")
+        print(f"{k:<44}{v['median_us']:>12.1f}{v['p99_us']:>12.1f}")
 
 
 if __name__ == "__main__":

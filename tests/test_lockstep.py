@@ -357,3 +357,158 @@ def test_peek_matches_take_without_side_effects():
         assert q.peek(2) == peeked  # peeking twice does not advance round-robin
         model_name, batch, _ = q.take(2)
         assert (model_name, batch) == peeked
+
+
+# ----------------------------------------------------------------------------- launch-ahead
+
+def ahead_engine(models: dict, max_batch: int = 2, sink=None, sm_policy=None) -> tuple[LockstepEngine, Collector]:
+    """An engine that issues lockstep k+1 before waiting for lockstep k (on the CPU runner the
+    stages run only when waited on, so k+1 is decided right after k is issued: the CPU test of
+    the launch-ahead path, with the admission shift at its largest)."""
+    sink = sink or Collector()
+    served = {name: ServedModel(name, m, slo) for name, (m, slo) in models.items()}
+    eng = LockstepEngine(served, EngineConfig(kind="robion", max_batch=max_batch), CPU, sink, sm_policy=sm_policy,
+                         launch_ahead=True)
+    eng.prepare()
+    return eng, sink
+
+
+def test_launch_ahead_keeps_lockstep_order_and_results():
+    model = build_model("toy", seed=1)
+    eng, sink = ahead_engine({"toy": (model, 1.0)}, max_batch=2)
+    rng = np.random.default_rng(0)
+    reqs = [make_req(model, str(i), rng) for i in range(9)]  # batches 2, 2, 2, 2, 1: same size back to back
+    for r in reqs:
+        r.model = "toy"
+        eng.submit(r)
+    drive(eng)
+    recs = eng.telemetry.records()
+    assert [(r.vlm_batch, r.action_batch) for r in recs] == [(2, 0), (2, 2), (2, 2), (2, 2), (1, 2), (0, 1)]
+    assert [r.ahead for r in recs] == [False] + [True] * 5
+    assert all(r.cpu_gap_us == 0.0 and r.lead_us > 0 and r.admit_early_us >= r.lead_us for r in recs[1:])
+    by_lockstep: dict[int, list[str]] = {}
+    for res in sink.results:
+        by_lockstep.setdefault(res.lockstep, []).append(res.request.id)
+    assert {k: sorted(v) for k, v in by_lockstep.items()} == \
+        {0: ["0", "1"], 1: ["2", "3"], 2: ["4", "5"], 3: ["6", "7"], 4: ["8"]}
+    # Each VLM stage read its own staging slot although the next batch was staged before it ran.
+    for res in sink.results:
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
+    s = eng.telemetry.summary()
+    assert s["ahead"] == s["back_to_back"] == 5 and s["cpu_gap_us"]["median"] == 0.0
+
+
+def test_launch_ahead_admits_at_the_decision_point():
+    """With launch-ahead, lockstep k+1's batch is taken before k ends: a request arriving after
+    that decision (here: during lockstep 0's VLM stage, after lockstep 1 was issued) waits for k+2."""
+    model = build_model("toy", seed=1)
+    rng = np.random.default_rng(3)
+    late = make_req(model, "late", rng)
+    late.model = "toy"
+    box = {}
+
+    def on_call(n):
+        if box.get("serving") and "sent" not in box:
+            box["sent"] = box["eng"]._index  # locksteps issued so far
+            box["eng"].submit(late)
+
+    wrapped = ArrivalDuringStage(model, on_call)
+    eng, sink = ahead_engine({"toy": (wrapped, 1.0)}, max_batch=2)
+    box["eng"] = eng
+    box["serving"] = True
+    first = make_req(model, "first", rng)
+    first.model = "toy"
+    eng.submit(first)
+    drive(eng)
+    res = {r.request.id: r for r in sink.results}
+    assert box["sent"] == 2 and res["first"].lockstep == 0  # lockstep 1 (first's action) already issued
+    assert res["late"].lockstep == 2
+    recs = eng.telemetry.records()
+    assert [(r.vlm_batch, r.action_batch) for r in recs] == [(1, 0), (0, 1), (1, 0), (0, 1)]
+    np.testing.assert_allclose(res["late"].actions, eager(model, late), rtol=1e-4, atol=1e-5)
+
+
+def test_launch_ahead_multi_model_esf_and_sm_levels():
+    a, b = build_model("toy", seed=1), build_model("toy", seed=2)
+    table = TableLevel({("toy:tiny", 1, "toy:tiny", 1): 64})
+    eng, sink = ahead_engine({"a": (a, 1.0), "b": (b, 1.0)}, max_batch=1, sm_policy=table)
+    rng = np.random.default_rng(4)
+    plan = [("a", "a1", 10.0), ("b", "b1", 5.0), ("a", "a2", 11.0), ("b", "b2", 20.0), ("a", "a3", 12.0)]
+    for model_name, rid, deadline in plan:
+        r = make_req(a, rid, rng, deadline_s=deadline)
+        r.model = model_name
+        eng.submit(r)
+    drive(eng)
+    order = [r.request.id for r in sorted(sink.results, key=lambda r: r.lockstep)]
+    assert order == ["b1", "a1", "a2", "a3", "b2"]
+    for res in sink.results:
+        m = a if res.request.model == "a" else b
+        np.testing.assert_allclose(res.actions, eager(m, res.request), rtol=1e-4, atol=1e-5)
+    assert [r.sm_level for r in eng.telemetry.records()] == [None, 64, 64, 64, 64, None]
+
+
+def test_launch_ahead_threaded_serving_and_shutdown_answer_everything():
+    model = build_model("toy", seed=1)
+    eng, sink = ahead_engine({"toy": (model, 1.0)}, max_batch=2)
+    stop = threading.Event()
+    t = threading.Thread(target=eng.run, args=(stop,))
+    t.start()
+    rng = np.random.default_rng(5)
+    reqs = []
+    for i in range(60):
+        r = make_req(model, str(i), rng)
+        r.model = "toy"
+        reqs.append(r)
+        eng.submit(r)
+        if i % 7 == 0:
+            time.sleep(0.002)
+    stop.set()
+    t.join(30)
+    assert not t.is_alive()
+    assert sink.ids() == sorted(r.id for r in reqs)
+    served = [r for r in sink.results if r.error is None]
+    assert served and all(r.error[0] == ErrorCode.UNAVAILABLE for r in sink.results if r.error is not None)
+    for res in served:
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
+
+
+def test_host_runner_vlm_reads_the_slot_staged_at_launch():
+    model = build_model("toy", seed=1)
+    st = BufferedStages(model, CPU, [1])
+    st.allocate()
+    rng = np.random.default_rng(12)
+    a, b = make_req(model, "a", rng), make_req(model, "b", rng)
+    runner = HostRunner()
+    runner.begin(0)
+    st.stage(1, [a])
+    runner.launch_vlm(st, 1, None, False)
+    runner.begin(1, after=0)
+    st.stage(1, [b])  # the next batch staged before lockstep 0 ran
+    runner.launch_vlm(st, 1, None, False)
+    assert not runner.done(0)
+    runner.wait(0)
+    assert runner.done(0) and not runner.done(1)
+    np.testing.assert_array_equal(st.dev_in[1].views["images"][0].numpy(), a.images)
+    runner.wait(1)
+    np.testing.assert_array_equal(st.dev_in[1].views["images"][0].numpy(), b.images)
+
+
+def test_launch_ahead_vlm_part_decided_after_the_end():
+    """The action part of lockstep k+1 goes ahead at once; when the engine cannot predict k's
+    end, the admission decision and VLM part of k+1 come after k's end. Same locksteps, same replies."""
+    model = build_model("toy", seed=1)
+    eng, sink = ahead_engine({"toy": (model, 1.0)}, max_batch=2)
+    eng.runner.asynchronous = True  # take the GPU path of the loop...
+    eng._predict_end = lambda cur: None  # ...with no prediction: every VLM part is decided late
+    rng = np.random.default_rng(13)
+    reqs = [make_req(model, str(i), rng) for i in range(5)]
+    for r in reqs:
+        r.model = "toy"
+        eng.submit(r)
+    drive(eng)
+    recs = eng.telemetry.records()
+    assert [(r.vlm_batch, r.action_batch) for r in recs] == [(2, 0), (2, 2), (1, 2), (0, 1)]
+    assert not any(r.ahead for r in recs) and all(r.cpu_gap_us is not None for r in recs[1:])
+    assert sorted(r.request.id for r in sink.results) == [str(i) for i in range(5)]
+    for res in sink.results:
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)

@@ -34,14 +34,29 @@ class LockstepRecord:
     duration_ms: float  # first stage start to last stage end (device time on the GPU)
     vlm_ms: float
     action_ms: float
-    # Host time from observing the previous lockstep's end to having issued this one;
-    # None when the engine idled in between (no back-to-back locksteps).
+    # Host time on the critical path between the previous lockstep and this one: from observing
+    # the previous lockstep's end to having issued this one, or 0 when this one was issued ahead
+    # (enqueued behind the previous one's end events before that end). A launch-ahead that the
+    # previous lockstep's end overtook counts its whole launch time (an upper bound). None when
+    # the engine idled in between (no back-to-back locksteps).
     cpu_gap_us: float | None = None
     # Device idle time between the previous lockstep's last kernel and this one's first
     # (CUDA events; includes the host's wake-up latency). None on the CPU or after idling.
     gpu_gap_us: float | None = None
     # Same, up to the later of the two stages' first kernel (what the second-launched stage loses).
     gpu_gap_last_us: float | None = None
+    # Host time to decide (scheduler pick, SM level) and issue this lockstep, on or off the critical path.
+    launch_us: float | None = None
+    # Issued ahead: enqueued while the previous lockstep still ran, gated on its end events.
+    ahead: bool = False
+    # For locksteps issued ahead: how long before the previous lockstep's end (as the host saw
+    # it) everything was issued, and how long before that end the batch was admitted (the
+    # admission point's shift that launch-ahead costs).
+    lead_us: float | None = None
+    admit_early_us: float | None = None
+    # The launch-ahead slack in force when it was decided, and how late the engine woke for it.
+    slack_us: float | None = None
+    wake_late_us: float | None = None
 
     @property
     def overlap_ms(self) -> float:
@@ -95,9 +110,14 @@ def _pct(values: list[float], q: float) -> float | None:
     return float(np.percentile(values, q)) if values else None
 
 
+def _stats(values: list[float]) -> dict:
+    return {"n": len(values), "median": _pct(values, 50), "p99": _pct(values, 99)}
+
+
 def summarize(records: list[LockstepRecord]) -> dict:
     """Gap percentiles over back-to-back locksteps and how often the stages overlapped."""
     cpu = [r.cpu_gap_us for r in records if r.cpu_gap_us is not None]
+    b2b = [r for r in records if r.cpu_gap_us is not None]
     gpu = [r.gpu_gap_us for r in records if r.gpu_gap_us is not None]
     gpu_last = [r.gpu_gap_last_us for r in records if r.gpu_gap_last_us is not None]
     both = [r for r in records if r.vlm_batch and r.action_batch]
@@ -110,5 +130,12 @@ def summarize(records: list[LockstepRecord]) -> dict:
         "cpu_gap_us": {"n": len(cpu), "median": _pct(cpu, 50), "p99": _pct(cpu, 99)},
         "gpu_gap_us": {"n": len(gpu), "median": _pct(gpu, 50), "p99": _pct(gpu, 99)},
         "gpu_gap_last_us": {"n": len(gpu_last), "median": _pct(gpu_last, 50), "p99": _pct(gpu_last, 99)},
+        "launch_us": _stats([r.launch_us for r in records if r.launch_us is not None]),
+        "ahead": sum(r.ahead for r in b2b),
+        "back_to_back": len(b2b),
+        "lead_us": _stats([r.lead_us for r in records if r.lead_us is not None]),
+        "admit_early_us": _stats([r.admit_early_us for r in records if r.admit_early_us is not None]),
+        "slack_us": _stats([r.slack_us for r in records if r.slack_us is not None]),
+        "wake_late_us": _stats([r.wake_late_us for r in records if r.wake_late_us is not None]),
         "sm_levels": sorted({str(r.sm_level) for r in records if r.vlm_batch}),
     }

@@ -195,6 +195,35 @@ def test_each_model_alone_equals_eager():
     assert eng.telemetry.summary()["overlapping"] > 0
 
 
+def test_launch_ahead_under_load_is_correct_and_hides_the_launch():
+    """A full queue keeps locksteps back to back: almost every lockstep is issued ahead (behind
+    the previous one's end events), replies still equal eager, and the device idles between
+    locksteps for less than the host takes to issue one."""
+    h = build_model("heavytoy", "full", seed=6, device=DEV)
+    models = {"h": h}
+    eng, results = _engine(models, EngineConfig(kind="robion", max_batch=2),
+                           TableLevel({("heavytoy:full", 2, "heavytoy:full", 2): 96}))
+    assert eng._launch_ahead
+    reqs = _requests(h, "h", 60, 8)
+    for r in reqs:  # all queued before the engine starts: saturating
+        eng.submit(r)
+    stop = threading.Event()
+    t = threading.Thread(target=eng.run, args=(stop,))
+    t.start()
+    deadline = time.monotonic() + 120
+    while len(results) < len(reqs) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    stop.set()
+    t.join(60)
+    assert not t.is_alive()
+    _check(models, results, len(reqs))
+    s = eng.telemetry.summary()
+    print(f"launch-ahead: {s['ahead']}/{s['back_to_back']} issued ahead; host gap {s['cpu_gap_us']}; "
+          f"GPU idle {s['gpu_gap_us']}; launch {s['launch_us']}; admitted early {s['admit_early_us']}")
+    assert s["ahead"] >= 0.5 * s["back_to_back"] > 0
+    assert s["gpu_gap_us"]["median"] < s["launch_us"]["median"]
+
+
 def test_disjoint_split_gives_two_partitions():
     from services.executor.sm import split_disjoint
 
