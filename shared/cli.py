@@ -89,7 +89,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 
 BENCHMARKS = {"capacity": "capacity.py", "router-hop": "router_hop.py", "solver": "solver_speed.py",
-              "models": "model_latency.py", "engine-gap": "engine_gap.py"}
+              "models": "model_latency.py", "engine-gap": "engine_gap.py", "colocation": "colocation.py",
+              "traffic": "traffic.py"}
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -181,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     plan.add_argument("rest", nargs=argparse.REMAINDER)
     plan.set_defaults(fn=cmd_plan)
 
-    bench = sub.add_parser("bench", help="run a benchmark from bench/ (capacity, router-hop, solver, models, engine-gap)",
+    bench = sub.add_parser("bench", help="run a benchmark from bench/ (" + ", ".join(sorted(BENCHMARKS)) + ")",
                            add_help=False)
     bench.add_argument("name", choices=sorted(BENCHMARKS))
     bench.add_argument("rest", nargs=argparse.REMAINDER)

@@ -512,3 +512,31 @@ def test_launch_ahead_vlm_part_decided_after_the_end():
     assert sorted(r.request.id for r in sink.results) == [str(i) for i in range(5)]
     for res in sink.results:
         np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
+
+
+def test_launch_ahead_failure_after_the_action_part_loses_no_request():
+    """A fault between issuing lockstep k+1's action part and deciding its VLM part: the action
+    batch already on the device is still completed and answered; its VLM part is decided later."""
+    model = build_model("toy", seed=1)
+    eng, sink = ahead_engine({"toy": (model, 1.0)}, max_batch=2)
+    rng = np.random.default_rng(5)
+    reqs = [make_req(model, str(i), rng) for i in range(6)]
+    for r in reqs:
+        r.model = "toy"
+        eng.submit(r)
+    real = eng._decide_vlm
+    calls = {"n": 0}
+
+    def flaky(launch, admit, after):
+        calls["n"] += 1
+        if calls["n"] == 2 and after is not None:
+            raise RuntimeError("injected fault")
+        return real(launch, admit, after)
+
+    eng._decide_vlm = flaky
+    drive(eng)
+    got = {res.request.id: res for res in sink.results}
+    assert sorted(got) == [str(i) for i in range(6)] and len(sink.results) == 6
+    for res in got.values():
+        assert res.error is None
+        np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)

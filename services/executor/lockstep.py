@@ -318,6 +318,7 @@ class LockstepEngine(Engine):
         self.launch_ahead_slack_us = self.LAUNCH_AHEAD_SLACK_US if launch_ahead_slack_us is None \
             else float(launch_ahead_slack_us)
         self._ahead: _Launched | None = None  # issued ahead, gated on the running lockstep's end
+        self._issued_part: _Launched | None = None  # the launch-ahead on the GPU while it is being completed
         self._durations: dict[tuple, float] = {}  # EMA of lockstep durations (ms) by (vlm, b, action, b, level)
         self._table_ms: dict[tuple, dict[str, float]] = {}  # profiled lockstep times, before an EMA exists
         self._launch_ema_us = 0.0  # EMA of the host time to decide and issue a lockstep
@@ -498,11 +499,17 @@ class LockstepEngine(Engine):
         self._report_expired(expired)
         nxt = None
         if admit and self._launch_ahead:
+            self._issued_part = None
             try:
                 nxt, expired = self._launch_next(cur)
                 self._report_expired(expired)
-            except Exception:  # its batches are answered; the running lockstep still completes
+            except Exception:  # the running lockstep still completes
                 log.exception("launching lockstep %d ahead failed", self._index)
+                # A lockstep already (partly) on the GPU keeps its batches: if its VLM part is
+                # still open it is decided after this lockstep's end, as when a launch-ahead
+                # comes too late.
+                nxt = self._issued_part
+            self._issued_part = None
         try:
             runner.wait(cur.index)
         except Exception as exc:
@@ -602,6 +609,7 @@ class LockstepEngine(Engine):
         ``cur`` ends first, the VLM part is decided after the end (part 1 still ran ahead)."""
         runner = self.runner
         nxt = self._issue_action_ahead(cur) if self._pending is not None else None
+        self._issued_part = nxt  # issued on the GPU: must survive a failure below (see step)
         woke = wake = None
         if runner.asynchronous:
             end = self._predict_end(cur)
