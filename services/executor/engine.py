@@ -42,9 +42,18 @@ class Engine:
         self.device = device
         self.on_results = on_results
         self.queues = ModelQueues(list(models), cfg.max_queue, cfg.policy, cfg.shed_expired)
+        # Noise is drawn when a request arrives (seeded per model, in arrival order), off the
+        # path between batches; a request may bring its own.
+        self._noise_gens = {name: torch.Generator().manual_seed(cfg.seed) for name in models}
+        self._noise_lock = threading.Lock()
 
     def submit(self, req: Request) -> None:
         """Thread-safe; raises ProtocolError (OVERLOADED, UNKNOWN_MODEL) when it cannot queue."""
+        gen = self._noise_gens.get(req.model)
+        if req.noise is None and gen is not None:
+            io = self.models[req.model].model.io
+            with self._noise_lock:
+                req.noise = torch.randn(io.horizon, io.action_dim, generator=gen).numpy()
         self.queues.put(req)
 
     def prepare(self) -> None:
@@ -94,18 +103,8 @@ class MonolithicEngine(Engine):
         self.graphed: dict = {}  # name -> GraphStages on a GPU with graphs
         self.telemetry = Telemetry(path=cfg.telemetry_file)
         self._index = 0
-        self._noise_gens = {name: torch.Generator().manual_seed(cfg.seed) for name in models}
-        self._noise_lock = threading.Lock()
         self._stream = None
         self._events = None
-
-    def submit(self, req: Request) -> None:
-        gen = self._noise_gens.get(req.model)
-        if req.noise is None and gen is not None:
-            io = self.models[req.model].model.io
-            with self._noise_lock:
-                req.noise = torch.randn(io.horizon, io.action_dim, generator=gen).numpy()
-        self.queues.put(req)
 
     def prepare(self) -> None:
         if self.device.type == "cuda" and self.cfg.graphs:

@@ -19,7 +19,6 @@ which is what the unit tests exercise.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -340,8 +339,6 @@ class LockstepEngine(Engine):
         self._expected: dict[tuple[str, str, int], float] = {}  # EMA of stage times (ms) by (arch, stage, batch)
         # Noise is drawn when a request is submitted (seeded, per model, in arrival order), so
         # drawing it costs the lockstep loop nothing and prestaging copies it with the observations.
-        self._noise_gens = {name: torch.Generator().manual_seed(cfg.seed) for name in models}
-        self._noise_lock = threading.Lock()
 
     # ------------------------------------------------------------------ start-up
 
@@ -465,14 +462,6 @@ class LockstepEngine(Engine):
         return _PendingTable(path, table)
 
     # ------------------------------------------------------------------ serving loop
-
-    def submit(self, req: Request) -> None:
-        gen = self._noise_gens.get(req.model)
-        if req.noise is None and gen is not None:
-            io = self.models[req.model].model.io
-            with self._noise_lock:
-                req.noise = torch.randn(io.horizon, io.action_dim, generator=gen).numpy()
-        self.queues.put(req)
 
     def step(self) -> bool:
         return self._step(admit=True)

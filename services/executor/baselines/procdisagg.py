@@ -501,8 +501,6 @@ class ProcDisaggEngine(Engine):
         self.running = cfg.running_batch or 4 * cfg.max_batch
         self.telemetry = StepTelemetry()
         self.vlm_ms: deque[float] = deque(maxlen=4096)
-        self._noise_gens = {name: torch.Generator().manual_seed(cfg.seed) for name in models}
-        self._noise_lock = threading.Lock()
         self._inflight: dict[int, Request] = {}
         self._inflight_lock = threading.Lock()
         self._drained = threading.Condition(self._inflight_lock)
@@ -514,14 +512,6 @@ class ProcDisaggEngine(Engine):
         self._ready_cv = threading.Condition()
 
     # ------------------------------------------------------------------ start-up
-
-    def submit(self, req: Request) -> None:
-        gen = self._noise_gens.get(req.model)
-        if req.noise is None and gen is not None:
-            io = self.models[req.model].model.io
-            with self._noise_lock:
-                req.noise = torch.randn(io.horizon, io.action_dim, generator=gen).numpy()
-        self.queues.put(req)
 
     def prepare(self) -> None:
         from services.executor.baselines.stepping import step_adapter
