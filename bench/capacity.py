@@ -154,7 +154,7 @@ class Report:
             old = json.loads(path.read_text())
             if old.get("schema") != SCHEMA:
                 raise SystemExit(f"--merge: {path} is not a {SCHEMA} file")
-            for key in ("capacity", "complete", "ratios", "deadlines_ms", "curves"):
+            for key in ("capacity", "complete", "ratios", "deadlines_ms", "curves", "overlap_bound"):
                 self.doc[key] = old.get(key, {})
             # Settings and meta of earlier runs stay with the models they measured (settings.models).
             self.doc["runs"] = [*old.get("runs", []), {"settings": old.get("settings"), "meta": old.get("meta")}]
@@ -182,6 +182,40 @@ class Report:
         tmp = self.path.with_suffix(self.path.suffix + ".tmp")
         tmp.write_text(json.dumps(_json_safe(self.doc), indent=1) + "\n")
         tmp.replace(self.path)
+
+
+def overlap_bound(model, batch: int, device: str) -> dict:
+    """Solo stage times at ``batch`` and the most any overlap can gain: (T_vlm + T_act) / max(T_vlm, T_act).
+
+    On a GPU from CUDA-graph replays (bench/model_latency.py); on the CPU from eager runs.
+    """
+    import statistics
+    import time
+
+    import torch
+
+    if device.startswith("cuda"):
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        from model_latency import bench_batch
+
+        with torch.cuda.device(torch.device(device)):
+            r = bench_batch(model, batch, iters=50, warmup=10)
+        vlm, act = r["vlm_ms"]["median"], r["action_ms"]["median"]
+    else:
+        images, state, tokens = model.example_inputs(batch, device=device)
+        noise = model.noise(batch, device=device)
+        v, a = [], []
+        with torch.inference_mode():
+            for _ in range(7):
+                t0 = time.perf_counter()
+                h = model.vlm_stage(images, state, tokens)
+                t1 = time.perf_counter()
+                model.action_stage(h, noise)
+                t2 = time.perf_counter()
+                v.append((t1 - t0) * 1e3)
+                a.append((t2 - t1) * 1e3)
+        vlm, act = statistics.median(v[2:]), statistics.median(a[2:])
+    return {"batch": batch, "vlm_ms": vlm, "action_ms": act, "bound": (vlm + act) / max(vlm, act)}
 
 
 def plot(doc: dict, path: Path) -> bool:
@@ -289,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, arch in models.items():
         served = served_models({name: arch}, args.size, args.device, args.seed, deadlines)
         report.doc["deadlines_ms"][name] = served[name].slo_s * 1e3
+        report.doc.setdefault("overlap_bound", {})[name] = overlap_bound(served[name].model, args.max_batch,
+                                                                         args.device)
         hosts = {e.label: EngineHost(engine_factory(e.kind, served, args.device, **e.overrides),
                                      reuse=not args.no_reuse, label=e.label) for e in engines}
         try:
@@ -301,7 +337,10 @@ def main(argv: list[str] | None = None) -> int:
             del served
         report.model_done(name, results, baseline)
         caps = ", ".join(f"{e} {r.capacity}" for e, r in results.items())
-        print(f"{name}: capacity at {100 * args.target:.0f}% SLO attainment: {caps}", flush=True)
+        bound = report.doc["overlap_bound"][name]
+        print(f"{name}: capacity at {100 * args.target:.0f}% SLO attainment: {caps}; overlap bound "
+              f"{bound['bound']:.2f}x (VLM {bound['vlm_ms']:.2f} ms, action {bound['action_ms']:.2f} ms at batch "
+              f"{bound['batch']})", flush=True)
 
     if args.out:
         print(f"wrote {args.out}")

@@ -251,6 +251,10 @@ def test_cli_writes_capacity_json_and_plot(tmp_path):
     assert doc["ratios"] == {"toy": {"rr/monolithic": 1.0}}
     assert doc["complete"] == {"toy": {"monolithic": True, "rr": True}}
     assert doc["deadlines_ms"] == {"toy": 500.0}
+    bound = doc["overlap_bound"]["toy"]
+    assert bound["batch"] == 2 and bound["vlm_ms"] > 0 and bound["action_ms"] > 0
+    assert abs(bound["bound"] - (bound["vlm_ms"] + bound["action_ms"]) / max(bound["vlm_ms"], bound["action_ms"])) < 1e-9
+    assert 1.0 < bound["bound"] <= 2.0
     for engine in ("monolithic", "rr"):
         pts = doc["curves"]["toy"][engine]
         assert [p["robots"] for p in pts] == [1, 2]
