@@ -13,17 +13,11 @@ import threading
 import time
 from pathlib import Path
 
-from shared.config import ConfigError, dial_address, load_config
+from shared.config import dial_address
+from shared.service import load_or_exit
 
 DEFAULT_DEMO = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
 
-
-def _load(path: str):
-    try:
-        return load_config(path)
-    except ConfigError as exc:
-        print(f"config error: {exc}", file=sys.stderr)
-        raise SystemExit(2)
 
 
 def _wait_for_signal() -> None:
@@ -37,7 +31,7 @@ def _wait_for_signal() -> None:
 def cmd_up(args: argparse.Namespace) -> int:
     from shared.cluster import LocalCluster
 
-    cfg = _load(args.config)
+    cfg = load_or_exit(args.config)
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
     # Ctrl-C during start-up must still stop what was started.
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
@@ -59,7 +53,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from shared.cluster import LocalCluster
 
-    cfg = _load(args.config)
+    cfg = load_or_exit(args.config)
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
     print(f"starting the cluster from {args.config} ...", flush=True)
     t0 = time.monotonic()
@@ -111,7 +105,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def cmd_ctl(args: argparse.Namespace) -> int:
     from shared.cluster import control_request, control_status
 
-    cfg = _load(args.config)
+    cfg = load_or_exit(args.config)
     address = dial_address(cfg.control.bind, cfg.control.connect)
     if args.action == "status":
         status = control_status(address, timeout_s=2.0)

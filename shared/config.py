@@ -45,7 +45,6 @@ class ModelConfig:
     weights: str | None = None  # safetensors file of the model's own state dict
     tokenizer: str | None = None  # tokenizer file; a byte-level tokenizer when absent
     slo_ms: float = field(default=156.0, metadata=_check(_positive, "expected a positive number"))
-    image_shape: list[int] | None = None  # wire image size [H, W, 3] when not the model's default
     robots: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))  # population N_i
     hz: float = field(default=2.0, metadata=_check(_positive, "expected a positive number"))  # request rate per robot
     limit: int | None = field(default=None, metadata=_check(_positive, "expected a positive integer"))
@@ -242,31 +241,37 @@ def _build(cls: type, data: Any, path: str) -> Any:
 
 # ----------------------------------------------------------------------------- cluster rules
 
+def _one_of(value: str, choices: tuple[str, ...], path: str) -> None:
+    if value not in choices:
+        raise ConfigError(f"{path}: expected one of {', '.join(choices)}, got {value!r}")
+
+
+def _unique_names(names: list[str], path: str) -> set[str]:
+    seen: set[str] = set()
+    for i, name in enumerate(names):
+        if not name or name in seen:
+            raise ConfigError(f"{path}[{i}].name: {'empty' if not name else f'duplicate name {name!r}'}")
+        seen.add(name)
+    return seen
+
+
 def _validate(cfg: ClusterConfig) -> None:
     from shared.models.registry import architectures
 
     archs = architectures()
     if not cfg.models:
         raise ConfigError("models: at least one model is needed")
-    seen: set[str] = set()
+    seen = _unique_names([m.name for m in cfg.models], "models")
     for i, m in enumerate(cfg.models):
-        if not m.name or m.name in seen:
-            raise ConfigError(f"models[{i}].name: {'empty' if not m.name else f'duplicate name {m.name!r}'}")
-        seen.add(m.name)
         if m.arch not in archs:
             raise ConfigError(f"models[{i}].arch: unknown architecture {m.arch!r} (known: {', '.join(sorted(archs))})")
         sizes = getattr(archs[m.arch], "CONFIGS", {})
         if m.size not in sizes:
             raise ConfigError(f"models[{i}].size: {m.arch} has no size {m.size!r} (sizes: {', '.join(sorted(sizes))})")
-        if m.image_shape is not None and (len(m.image_shape) != 3 or m.image_shape[2] != 3 or min(m.image_shape) < 1):
-            raise ConfigError(f"models[{i}].image_shape: expected [H, W, 3]")
     if not cfg.executors:
         raise ConfigError("executors: at least one executor is needed")
-    names: set[str] = set()
+    _unique_names([e.name for e in cfg.executors], "executors")
     for j, e in enumerate(cfg.executors):
-        if not e.name or e.name in names:
-            raise ConfigError(f"executors[{j}].name: {'empty' if not e.name else f'duplicate name {e.name!r}'}")
-        names.add(e.name)
         if not e.models:
             raise ConfigError(f"executors[{j}].models: an executor needs at least one model")
         for k, name in enumerate(e.models):
@@ -278,21 +283,15 @@ def _validate(cfg: ClusterConfig) -> None:
     for i, m in enumerate(cfg.models):
         if m.name not in hosted:
             raise ConfigError(f"models[{i}]: model {m.name!r} is placed on no executor")
-    if cfg.engine.kind not in ENGINE_KINDS:
-        raise ConfigError(f"engine.kind: expected one of {', '.join(ENGINE_KINDS)}, got {cfg.engine.kind!r}")
-    if cfg.engine.policy not in POLICIES:
-        raise ConfigError(f"engine.policy: expected one of {', '.join(POLICIES)}, got {cfg.engine.policy!r}")
-    if cfg.engine.sm_policy not in SM_POLICIES:
-        raise ConfigError(f"engine.sm_policy: expected one of {', '.join(SM_POLICIES)}, got {cfg.engine.sm_policy!r}")
+    _one_of(cfg.engine.kind, ENGINE_KINDS, "engine.kind")
+    _one_of(cfg.engine.policy, POLICIES, "engine.policy")
+    _one_of(cfg.engine.sm_policy, SM_POLICIES, "engine.sm_policy")
     if cfg.engine.sm_policy == "static" and (cfg.engine.static_sms <= 0 or cfg.engine.static_sms % 8):
         raise ConfigError("engine.static_sms: sm_policy static needs a positive multiple of 8")
     _validate_engine(cfg.engine)
-    if cfg.control.strategy not in STRATEGIES:
-        raise ConfigError(f"control.strategy: expected one of {', '.join(STRATEGIES)}, got {cfg.control.strategy!r}")
-    if cfg.control.limits.network not in NETWORKS:
-        raise ConfigError(f"control.limits.network: expected one of {', '.join(NETWORKS)}, got {cfg.control.limits.network!r}")
-    if cfg.fleet.network not in NETWORKS:
-        raise ConfigError(f"fleet.network: expected one of {', '.join(NETWORKS)}, got {cfg.fleet.network!r}")
+    _one_of(cfg.control.strategy, STRATEGIES, "control.strategy")
+    _one_of(cfg.control.limits.network, NETWORKS, "control.limits.network")
+    _one_of(cfg.fleet.network, NETWORKS, "fleet.network")
     for k, name in enumerate(cfg.fleet.models or []):
         if name not in seen:
             raise ConfigError(f"fleet.models[{k}]: no model named {name!r}")
@@ -306,9 +305,7 @@ def _validate_engine(e: EngineConfig) -> None:
         raise ConfigError("engine.disjoint_sms: expected a multiple of 8 (0: profiled at start-up)")
     if e.running_batch and e.running_batch < e.max_batch:
         raise ConfigError(f"engine.running_batch: must be at least max_batch ({e.max_batch}), or 0 for 4 x max_batch")
-    if e.procdisagg_workers not in PROCDISAGG_WORKERS:
-        raise ConfigError(f"engine.procdisagg_workers: expected one of {', '.join(PROCDISAGG_WORKERS)}, "
-                          f"got {e.procdisagg_workers!r}")
+    _one_of(e.procdisagg_workers, PROCDISAGG_WORKERS, "engine.procdisagg_workers")
 
 
 def _expand_placement(data: Any) -> Any:
