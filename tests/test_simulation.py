@@ -182,6 +182,48 @@ def test_search_trusts_a_failure_below_a_pass():
     assert s.capacity == 13
 
 
+def _run_screened(s: CapacitySearch, passes) -> list[tuple[int, int]]:
+    """Drive a screened search; ``passes(n, epochs)`` decides each point. Returns (robots, epochs) in order."""
+    trace = []
+    while not s.done:
+        n, epochs = s.next(), s.epochs_next() or s.full_epochs
+        trace.append((n, epochs))
+        p = _point(n, passes(n, epochs))
+        p.epochs = epochs
+        s.record(p)
+    return trace
+
+
+@pytest.mark.parametrize("threshold", [1, 37, 63, 64])
+def test_screened_search_runs_every_epoch_only_on_the_candidate(threshold):
+    s = CapacitySearch(0.98, 8, 64, screen_epochs=1, full_epochs=5)
+    trace = _run_screened(s, lambda n, epochs: n <= threshold)
+    assert s.capacity == threshold
+    assert [t for t in trace if t[1] == 5] == [(threshold, 5)]  # one full run, on the answer
+    assert all(e == 1 for _, e in trace[:-1])
+
+
+def test_screened_search_goes_on_below_a_candidate_that_fails_its_full_run():
+    # Short runs pass up to 40, but with every epoch only up to 33 holds: the full-run failure wins.
+    s = CapacitySearch(0.98, 8, 256, screen_epochs=1, full_epochs=5)
+    trace = _run_screened(s, lambda n, epochs: n <= (40 if epochs == 1 else 33))
+    assert s.capacity == 33
+    full = [n for n, e in trace if e == 5]
+    assert full[0] == 40 and full[-1] == 33 and all(n > 33 for n in full[:-1])
+    assert s.points[-1].robots == 33 and s.points[-1].passed and s.points[-1].epochs == 5
+
+
+def test_screened_search_with_nothing_passing_runs_no_full_point():
+    s = CapacitySearch(0.98, 4, 64, screen_epochs=1, full_epochs=5)
+    trace = _run_screened(s, lambda n, epochs: False)
+    assert s.capacity == 0 and all(e == 1 for _, e in trace)
+
+
+def test_screening_needs_fewer_epochs_than_a_full_point():
+    with pytest.raises(ValueError, match="screen_epochs"):
+        CapacitySearch(0.98, 1, 64, screen_epochs=5, full_epochs=5)
+
+
 def test_sweep_capacity_stops_at_the_first_failure():
     s = SweepSearch([8, 2, 4, 16])
     for n, ok in [(2, True), (4, True), (8, False), (16, True)]:

@@ -548,18 +548,30 @@ class CapacitySearch:
     point by point. Bisection assumes attainment falls with load; when noise breaks that
     (a count fails below one that passed) the failure wins, so the capacity found is a
     count that passed with no failed count below it.
+
+    With ``screen_epochs`` the bracket is found with short points (that many epochs each)
+    and only the candidate is then measured with every epoch (``epochs_next`` says which);
+    a candidate that fails its full run becomes the new upper end and the search goes on
+    below it. Most points of a search are far from the capacity, where one epoch already
+    tells pass from fail, so this spends the long runs where they decide something.
     """
 
-    def __init__(self, target: float = 0.98, start: int = 1, max_robots: int = 256, growth: float = 2.0):
+    def __init__(self, target: float = 0.98, start: int = 1, max_robots: int = 256, growth: float = 2.0,
+                 screen_epochs: int | None = None, full_epochs: int | None = None):
         if not 0 < target <= 1 or start < 1 or max_robots < start or growth <= 1:
             raise ValueError("CapacitySearch: 0 < target <= 1, 1 <= start <= max_robots, growth > 1")
+        if screen_epochs is not None and (full_epochs is None or not 1 <= screen_epochs < full_epochs):
+            raise ValueError("CapacitySearch: screening needs 1 <= screen_epochs < full_epochs")
         self.target = target
         self.max_robots = max_robots
         self.growth = growth
+        self.screen_epochs = screen_epochs
+        self.full_epochs = full_epochs
         self.points: list[Point] = []
         self.lo = 0  # largest count known to pass
         self.hi: int | None = None  # smallest count known to fail
         self._next: int | None = start
+        self._confirming = False
 
     @property
     def done(self) -> bool:
@@ -572,6 +584,15 @@ class CapacitySearch:
     def next(self) -> int | None:
         return self._next
 
+    def epochs_next(self) -> int | None:
+        """Epochs for the next point: the screening count while bracketing, None for the caller's full count."""
+        if self.screen_epochs is None or self._confirming:
+            return None
+        return self.screen_epochs
+
+    def _confirmed(self, n: int) -> bool:
+        return any(p.robots == n and p.passed and p.epochs >= self.full_epochs for p in self.points)
+
     def record(self, point: Point) -> None:
         self.points.append(point)
         n = point.robots
@@ -579,19 +600,23 @@ class CapacitySearch:
             self.lo = max(self.lo, n)
         else:
             self.hi = n if self.hi is None else min(self.hi, n)
-        if self.hi is None:  # still growing
-            if n >= self.max_robots:
-                self._next = None
-            else:
-                self._next = min(self.max_robots, max(n + 1, int(n * self.growth)))
+        self._confirming = False
+        if self.hi is None and n < self.max_robots:  # still growing
+            self._next = min(self.max_robots, max(n + 1, int(n * self.growth)))
             return
-        if self.hi <= self.lo:
+        if self.hi is not None and self.hi <= self.lo:
             # Non-monotone noise: a count failed below one that passed. Trust the failure
             # (capacity must hold at every count below it) and search below it.
             self.lo = max((p.robots for p in self.points if p.passed and p.robots < self.hi), default=0)
-        self._next = (self.lo + self.hi) // 2 if self.hi - self.lo > 1 else None
-        if self._next is not None and any(p.robots == self._next for p in self.points):
-            self._next = None  # already measured: the bracket cannot narrow further
+        if self.hi is not None and self.hi - self.lo > 1:
+            self._next = (self.lo + self.hi) // 2
+            if not any(p.robots == self._next for p in self.points):
+                return
+        # Bracket closed (or the midpoint was already measured): confirm the candidate with every epoch.
+        if self.screen_epochs is not None and self.lo > 0 and not self._confirmed(self.lo):
+            self._next, self._confirming = self.lo, True
+            return
+        self._next = None
 
 
 class SweepSearch:
@@ -661,16 +686,22 @@ def measure_point(host: EngineHost, model: str, robots: int, hz: float, sim: Sim
 def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.0, sim: SimConfig | None = None,
                      target: float = 0.98, robots: Sequence[int] | None = None, start: int = 1,
                      max_robots: int = 256, early_stop: bool = True, progress: bool = True,
-                     on_point: Callable[[str, Point], None] | None = None) -> dict[str, CapacityResult]:
+                     on_point: Callable[[str, Point], None] | None = None,
+                     screen_epochs: int | None = None) -> dict[str, CapacityResult]:
     """Capacity of ``model`` on each engine, their points interleaved so all see the same machine state.
 
     ``robots`` given: a sweep over those counts; otherwise a search (exponential growth
     from ``start`` then bisection, at most ``max_robots``). ``on_point(engine, point)``
-    is called after each point (e.g. to save partial results).
+    is called after each point (e.g. to save partial results). ``screen_epochs`` (search
+    only): bracket with points of that many epochs and run all ``sim.epochs`` only on the
+    candidate (CapacitySearch).
     """
     sim = sim or SimConfig()
+    if screen_epochs is not None and screen_epochs >= sim.epochs:
+        screen_epochs = None  # nothing to save: every point runs all epochs anyway
     searches: dict[str, Search] = {
-        name: SweepSearch(robots, target) if robots is not None else CapacitySearch(target, start, max_robots)
+        name: SweepSearch(robots, target) if robots is not None else
+        CapacitySearch(target, start, max_robots, screen_epochs=screen_epochs, full_epochs=sim.epochs)
         for name in hosts}
     bar = _progress(model, total=len(hosts) * len(set(robots)) if robots is not None else None, enabled=progress)
     try:
@@ -681,7 +712,9 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
                     continue
                 if bar is not None:
                     bar.set_postfix_str(f"{name} @ {n} robots")
-                point = measure_point(hosts[name], model, n, hz, sim, target, early_stop)
+                epochs = search.epochs_next() if isinstance(search, CapacitySearch) else None
+                point_sim = sim if epochs is None else dataclasses.replace(sim, epochs=epochs)
+                point = measure_point(hosts[name], model, n, hz, point_sim, target, early_stop)
                 search.record(point)
                 log.info("%s %s %d robots: SLO-AT %.3f p99 %.1f ms%s", model, name, n, point.slo_attainment,
                          point.p99_ms, "" if point.passed else " (fail)")
@@ -701,11 +734,11 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
 
 def find_capacity(engine: EngineHost | EngineFactory, model: str, hz: float = 2.0, sim: SimConfig | None = None,
                   target: float = 0.98, start: int = 1, max_robots: int = 256, early_stop: bool = True,
-                  progress: bool = True) -> CapacityResult:
+                  progress: bool = True, screen_epochs: int | None = None) -> CapacityResult:
     """The largest robot count of ``model`` with SLO attainment >= ``target`` on one engine."""
     host = _as_host(engine)
     return compare_capacity({host.label or "engine": host}, model, hz, sim, target, None, start, max_robots,
-                            early_stop, progress)[host.label or "engine"]
+                            early_stop, progress, screen_epochs=screen_epochs)[host.label or "engine"]
 
 
 def sweep(engine: EngineHost | EngineFactory, model: str, robots: Sequence[int], hz: float = 2.0,
