@@ -204,13 +204,20 @@ def test_screened_search_runs_every_epoch_only_on_the_candidate(threshold):
 
 
 def test_screened_search_goes_on_below_a_candidate_that_fails_its_full_run():
-    # Short runs pass up to 40, but with every epoch only up to 33 holds: the full-run failure wins.
+    # Short runs pass up to 40, but with every epoch only up to 33 holds: the full-run failure wins,
+    # and from then on every point runs all epochs (galloping down 39, 37, 33, then bisecting).
     s = CapacitySearch(0.98, 8, 256, screen_epochs=1, full_epochs=5)
     trace = _run_screened(s, lambda n, epochs: n <= (40 if epochs == 1 else 33))
     assert s.capacity == 33
-    full = [n for n, e in trace if e == 5]
-    assert full[0] == 40 and full[-1] == 33 and all(n > 33 for n in full[:-1])
-    assert s.points[-1].robots == 33 and s.points[-1].passed and s.points[-1].epochs == 5
+    first_full = next(i for i, (_, e) in enumerate(trace) if e == 5)
+    assert trace[first_full] == (40, 5) and all(e == 5 for _, e in trace[first_full:])
+    assert [n for n, _ in trace[first_full:]] == [40, 39, 37, 33, 35, 34]
+
+
+def test_screened_search_where_no_full_run_passes_ends_at_zero():
+    s = CapacitySearch(0.98, 4, 16, screen_epochs=1, full_epochs=5)
+    _run_screened(s, lambda n, epochs: epochs == 1 and n <= 6)
+    assert s.capacity == 0 and s.done
 
 
 def test_screened_search_with_nothing_passing_runs_no_full_point():

@@ -550,10 +550,10 @@ class CapacitySearch:
     count that passed with no failed count below it.
 
     With ``screen_epochs`` the bracket is found with short points (that many epochs each)
-    and only the candidate is then measured with every epoch (``epochs_next`` says which);
-    a candidate that fails its full run becomes the new upper end and the search goes on
-    below it. Most points of a search are far from the capacity, where one epoch already
-    tells pass from fail, so this spends the long runs where they decide something.
+    and only the candidate is then measured with every epoch (``epochs_next`` says which).
+    Short points can be optimistic (one epoch sees one draw of the robots' phases), so
+    once a candidate fails its full run every later point runs all epochs: galloping down
+    from that failure (1, 2, 4, ... robots below it) to a full pass, then bisecting.
     """
 
     def __init__(self, target: float = 0.98, start: int = 1, max_robots: int = 256, growth: float = 2.0,
@@ -568,10 +568,13 @@ class CapacitySearch:
         self.screen_epochs = screen_epochs
         self.full_epochs = full_epochs
         self.points: list[Point] = []
+        self.full_points: list[Point] = []  # points run with every epoch (all of them without screening)
         self.lo = 0  # largest count known to pass
         self.hi: int | None = None  # smallest count known to fail
         self._next: int | None = start
-        self._confirming = False
+        self._confirming = False  # the next point is a screened candidate's full run
+        self._full_mode = False  # a candidate failed its full run: no more screening
+        self._step = 0  # galloping distance below hi while no full run has passed
 
     @property
     def done(self) -> bool:
@@ -586,21 +589,26 @@ class CapacitySearch:
 
     def epochs_next(self) -> int | None:
         """Epochs for the next point: the screening count while bracketing, None for the caller's full count."""
-        if self.screen_epochs is None or self._confirming:
+        if self.screen_epochs is None or self._confirming or self._full_mode:
             return None
         return self.screen_epochs
 
-    def _confirmed(self, n: int) -> bool:
-        return any(p.robots == n and p.passed and p.epochs >= self.full_epochs for p in self.points)
-
     def record(self, point: Point) -> None:
+        full = self.epochs_next() is None
         self.points.append(point)
+        if full:
+            self.full_points.append(point)
         n = point.robots
         if point.passed:
             self.lo = max(self.lo, n)
         else:
             self.hi = n if self.hi is None else min(self.hi, n)
+        if full and not point.passed and self.screen_epochs is not None:
+            self._full_mode = True
         self._confirming = False
+        if self._full_mode:
+            self._record_full()
+            return
         if self.hi is None and n < self.max_robots:  # still growing
             self._next = min(self.max_robots, max(n + 1, int(n * self.growth)))
             return
@@ -613,10 +621,24 @@ class CapacitySearch:
             if not any(p.robots == self._next for p in self.points):
                 return
         # Bracket closed (or the midpoint was already measured): confirm the candidate with every epoch.
-        if self.screen_epochs is not None and self.lo > 0 and not self._confirmed(self.lo):
+        if self.screen_epochs is not None and self.lo > 0 and not any(
+                p.robots == self.lo and p.passed for p in self.full_points):
             self._next, self._confirming = self.lo, True
             return
         self._next = None
+
+    def _record_full(self) -> None:
+        assert self.hi is not None
+        passes = [p.robots for p in self.full_points if p.passed and p.robots < self.hi]
+        if not passes:  # gallop down from the failure
+            self.lo = 0
+            self._step = max(1, 2 * self._step)
+            self._next = self.hi - self._step if self.hi - self._step >= 1 else None
+            return
+        self.lo = max(passes)
+        mid = (self.lo + self.hi) // 2
+        measured = {p.robots for p in self.full_points}
+        self._next = mid if self.hi - self.lo > 1 and mid not in measured else None
 
 
 class SweepSearch:
