@@ -100,6 +100,34 @@ def _profile_path(cfg, gpu: str, archs: list[str]) -> Path:
     return p.with_name(p.name.replace("sm-table_", "disjoint_", 1))
 
 
+def _time_partition(part, stages: dict, runner, combos: list, sizes: list[int],
+                    repeats: int) -> tuple[float, dict[str, float]]:
+    """Capture every architecture's graphs on ``part`` and time each combination as one lockstep."""
+    runner.vlm_stream, runner.action_stream = part.vlm_stream, part.action_stream
+    for st in stages.values():
+        st.vlm_graphs.clear()
+        st.action_graphs.clear()
+        st.capture_stream, st.action_stream = part.vlm_stream, part.action_stream
+        st.capture_action()
+        for b in sizes:
+            st.capture_vlm(b, {None})
+    per: dict[str, float] = {}
+    for va, vb, aa, ab in combos:
+        vst, ast = stages[va], stages[aa]
+        samples = []
+        for i in range(2 + repeats):
+            runner.begin(i)
+            runner.launch_handoff(ast, ab)
+            runner.launch_action(ast, ab, 0)
+            runner.launch_vlm(vst, vb, None, after_handoff=ast is vst and ab == vb)
+            runner.end_launch()
+            runner.wait()
+            if i >= 2:
+                samples.append(runner.measure(i, False).duration_ms)
+        per[f"{va}x{vb}|{aa}x{ab}"] = statistics.median(samples)
+    return statistics.mean(per.values()), per
+
+
 def profile_disjoint(models: dict, device: torch.device, cfg, repeats: int | None = None) -> dict:
     """Pick the VLM partition size N (multiples of 8) that minimises the mean lockstep time.
 
@@ -138,42 +166,30 @@ def profile_disjoint(models: dict, device: torch.device, cfg, repeats: int | Non
         st.allocate()
     times: dict[str, float] = {}
     per_combo: dict[str, dict[str, float]] = {}
+    failed: dict[str, str] = {}
     for n in _candidates(total):
         part = split_disjoint(device, n)
-        runner.vlm_stream, runner.action_stream = part.vlm_stream, part.action_stream
-        for st in stages.values():
-            st.vlm_graphs.clear()
-            st.action_graphs.clear()
-            st.capture_stream, st.action_stream = part.vlm_stream, part.action_stream
-            st.capture_action()
-            for b in sizes:
-                st.capture_vlm(b, {None})
-        per: dict[str, float] = {}
-        for va, vb, aa, ab in combos:
-            vst, ast = stages[va], stages[aa]
-            samples = []
-            for i in range(2 + repeats):
-                runner.begin(i)
-                runner.launch_handoff(ast, ab)
-                runner.launch_action(ast, ab, 0)
-                runner.launch_vlm(vst, vb, None, after_handoff=ast is vst and ab == vb)
-                runner.end_launch()
-                runner.wait()
-                if i >= 2:
-                    samples.append(runner.measure(i, False).duration_ms)
-            per[f"{va}x{vb}|{aa}x{ab}"] = statistics.median(samples)
-        times[str(n)] = statistics.mean(per.values())
-        per_combo[str(n)] = per
-        torch.cuda.synchronize(device)
-        for st in stages.values():
-            st.vlm_graphs.clear()
-            st.action_graphs.clear()
-        del part
-        log.info("disjoint %d/%d SMs: mean lockstep %.3f ms", n, total - n, times[str(n)])
+        try:
+            times[str(n)], per_combo[str(n)] = _time_partition(part, stages, runner, combos, sizes, repeats)
+            log.info("disjoint %d/%d SMs: mean lockstep %.3f ms", n, total - n, times[str(n)])
+        except RuntimeError as exc:
+            # A library kernel may not run on a partition this small (its launch needs more
+            # SMs than the partition has): that split is not a candidate, the others still are.
+            failed[str(n)] = str(exc).splitlines()[0][:300]
+            log.warning("disjoint %d/%d SMs cannot run the stages, skipped: %s", n, total - n, failed[str(n)])
+        finally:
+            torch.cuda.synchronize(device)
+            for st in stages.values():
+                st.vlm_graphs.clear()
+                st.action_graphs.clear()
+            del part
+    if not times:
+        raise RuntimeError(f"disjoint: no VLM partition size could run the stages ({failed})")
     best = min(times, key=times.get)
     doc = {"gpu": gpu, "sm_count": total, "torch": torch.__version__, "max_batch": cfg.max_batch, "archs": archs,
            "objective": "mean lockstep time over the (vlm, action) batch combinations", "repeats": repeats,
-           "best_sms": int(best), "mean_ms": times, "combo_ms": per_combo, "profile_s": time.perf_counter() - t0}
+           "best_sms": int(best), "mean_ms": times, "combo_ms": per_combo, "failed": failed,
+           "profile_s": time.perf_counter() - t0}
     del stages
     torch.cuda.synchronize(device)
     torch.cuda.empty_cache()
