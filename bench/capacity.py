@@ -131,8 +131,9 @@ def meta(device: str) -> dict:
     return {
         "gpu": gpu, "device": device, "cpu": platform.processor() or platform.machine(), "host": platform.node(),
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        # A copy of the tree without its .git (e.g. shipped to a GPU host) names its commit in ROBION_COMMIT.
-        "commit": _git("rev-parse", "HEAD") or os.environ.get("ROBION_COMMIT"),
+        # A copy of the tree shipped to a GPU host names its commit in ROBION_COMMIT: its own
+        # .git, if it has one, need not be the one the tree came from.
+        "commit": os.environ.get("ROBION_COMMIT") or _git("rev-parse", "HEAD"),
         "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
         "command": " ".join([os.path.relpath(sys.argv[0], ROOT) if sys.argv[0] else "bench/capacity.py",
                              *sys.argv[1:]]),
@@ -275,7 +276,7 @@ def plot(doc: dict, path: Path) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--models", required=True, help="comma-separated architectures, or name=arch")
+    p.add_argument("--models", help="comma-separated architectures, or name=arch (required unless --replot)")
     p.add_argument("--engines", default="robion,monolithic",
                    help="comma-separated engine kinds, or label=kind:field=value:... (EngineConfig overrides)")
     p.add_argument("--size", default="full", help="model size: full or tiny")
@@ -303,10 +304,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, help="JSON results file")
     p.add_argument("--merge", action="store_true", help="keep other models' results already in --out")
     p.add_argument("--plot", type=Path, help="PNG of the curves (needs matplotlib)")
+    p.add_argument("--replot", type=Path, metavar="JSON", help="measure nothing: draw --plot from this results file")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--log-level", default="WARNING")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if args.replot:
+        if not args.plot:
+            raise SystemExit("--replot needs --plot PNG")
+        if not plot(json.loads(args.replot.read_text()), args.plot):
+            raise SystemExit(f"no plot written (matplotlib missing or no curves in {args.replot})")
+        print(f"wrote {args.plot}")
+        return 0
+    if not args.models:
+        raise SystemExit("--models is required")
 
     models = parse_models(args.models)
     engines = parse_engines(args.engines, args.max_batch)

@@ -97,8 +97,9 @@ def run(args) -> dict:
                       f"p99 {res.overall.p99_ms:7.1f} ms", flush=True)
         for h in hosts.values():
             h.close()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=ROOT).stdout.strip() or os.environ.get("ROBION_COMMIT", "")
+    # A tree shipped to a GPU host names its commit in ROBION_COMMIT (its .git may be another's).
+    commit = os.environ.get("ROBION_COMMIT") or subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
     meta = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit,
             "device": torch.cuda.get_device_name(0) if device.startswith("cuda") else "cpu", "torch": torch.__version__,
             "size": args.size, "hz": args.hz, "epochs": args.epochs, "duration_s": args.duration,

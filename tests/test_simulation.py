@@ -317,3 +317,19 @@ def test_cli_writes_capacity_json_and_plot(tmp_path):
         assert not png.exists()
     else:
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_meta_names_the_shipped_commit_and_replot_needs_a_png(tmp_path, monkeypatch):
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+
+    monkeypatch.setenv("ROBION_COMMIT", "0123abcd")
+    assert bench_capacity.meta("cpu")["commit"] == "0123abcd"
+    doc = tmp_path / "cap.json"
+    doc.write_text(json.dumps({"schema": "robion.capacity/1", "target": 0.98, "curves": {}}))
+    with pytest.raises(SystemExit, match="--replot needs --plot"):
+        bench_capacity.main(["--replot", str(doc)])
+    with pytest.raises(SystemExit, match="no plot written"):  # no curves (or no matplotlib): nothing drawn
+        bench_capacity.main(["--replot", str(doc), "--plot", str(tmp_path / "x.png")])
+    with pytest.raises(SystemExit, match="--models is required"):
+        bench_capacity.main([])

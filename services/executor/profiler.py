@@ -187,6 +187,7 @@ def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], 
             bar.set_postfix_str(f"{va}x{vb}|{aa}x{ab} best {level_name(best)}")
     bar.close()
     table.archs = sorted(set(table.archs) | set(by_arch))
+    table.max_batch = max([table.max_batch, *batch_sizes])  # a table extended for a larger max_batch says so
     table.profile_s += time.perf_counter() - t0
     table.repeats = repeats
     return table
