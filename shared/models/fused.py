@@ -146,10 +146,30 @@ if triton is not None:
 
 
     @triton.jit
+    def _combine_rows(part_ptr, ml_ptr, o_ptr, pid_bh, b, h, offs_m, m_ok, offs_d, M, o_sb, o_sh, o_sm,
+                      NS: tl.constexpr):
+        m_max = tl.full(offs_m.shape, -float("inf"), tl.float32)
+        for sp in tl.static_range(NS):
+            row = (pid_bh * NS + sp) * M + offs_m
+            m_max = tl.maximum(m_max, tl.load(ml_ptr + row * 2, mask=m_ok, other=-float("inf"), cache_modifier=".cg"))
+        acc = tl.zeros([offs_m.shape[0], offs_d.shape[0]], tl.float32)
+        den = tl.zeros(offs_m.shape, tl.float32)
+        for sp in tl.static_range(NS):
+            row = (pid_bh * NS + sp) * M + offs_m
+            w = tl.exp(tl.load(ml_ptr + row * 2, mask=m_ok, other=-float("inf"), cache_modifier=".cg") - m_max)
+            w = tl.where(m_ok, w, 0.0)
+            den += w * tl.load(ml_ptr + row * 2 + 1, mask=m_ok, other=0.0, cache_modifier=".cg")
+            acc += w[:, None] * tl.load(part_ptr + row[:, None] * offs_d.shape[0] + offs_d[None, :],
+                                        mask=m_ok[:, None], other=0.0, cache_modifier=".cg")
+        o = acc / tl.where(m_ok, den, 1.0)[:, None]
+        tl.store(o_ptr + b * o_sb + h * o_sh + offs_m[:, None] * o_sm + offs_d[None, :],
+                 o.to(o_ptr.dtype.element_ty), mask=m_ok[:, None])
+
+    @triton.jit
     def _attn_kernel(q_ptr, k_ptr, v_ptr, bias_ptr, o_ptr, part_ptr, ml_ptr, M, L, H, split_len, sm_scale,
                      q_sb, q_sh, q_sm, k_sb, k_sh, k_sl, v_sb, v_sh, v_sl, b_sb, b_sm, o_sb, o_sh, o_sm,
-                     HAS_BIAS: tl.constexpr, SPLIT: tl.constexpr, D: tl.constexpr, BLOCK_M: tl.constexpr,
-                     BLOCK_N: tl.constexpr):
+                     cnt_ptr, HAS_BIAS: tl.constexpr, SPLIT: tl.constexpr, D: tl.constexpr, BLOCK_M: tl.constexpr,
+                     BLOCK_N: tl.constexpr, FUSED_COMBINE: tl.constexpr = False, NS: tl.constexpr = 1):
         # One program per (batch x kv head, block of query rows, slice of the keys); online
         # softmax over key blocks. With SPLIT the unnormalised partial results and their
         # (max, sum) go to scratch and _attn_combine merges the slices (flash-decoding).
@@ -191,6 +211,16 @@ if triton is not None:
             tl.store(part_ptr + row[:, None] * D + offs_d[None, :], acc, mask=m_ok[:, None])
             tl.store(ml_ptr + row * 2, m_i, mask=m_ok)
             tl.store(ml_ptr + row * 2 + 1, l_i, mask=m_ok)
+            if FUSED_COMBINE:
+                # The last of the NS programs of this (head, row block) to finish merges the
+                # slices (no second launch). Partials are read back from L2 in a fixed order,
+                # so the result does not depend on which program came last.
+                tl.debug_barrier()
+                cnt = cnt_ptr + pid_bh * tl.num_programs(1) + pid_m
+                if tl.atomic_add(cnt, 1, sem="acq_rel", scope="gpu") == NS - 1:
+                    _combine_rows(part_ptr, ml_ptr, o_ptr, pid_bh, b, h, offs_m, m_ok, offs_d, M,
+                                  o_sb, o_sh, o_sm, NS)
+                    tl.atomic_xchg(cnt, 0, sem="relaxed", scope="gpu")
         else:
             o = acc / l_i[:, None]
             tl.store(o_ptr + b * o_sb + h * o_sh + offs_m[:, None] * o_sm + offs_d[None, :],
@@ -226,26 +256,40 @@ if triton is not None:
 # --------------------------------------------------------------------------- API
 
 
-def attention_fits(q: torch.Tensor, rows: int, head_dim: int) -> bool:
+ATTN_CFG = {"max_rows": 1024, "min_lib_programs": 132, "big_rows": 1 << 30, "big_block_m": 64, "big_block_n": 64,
+            "big_warps": 8}
+
+
+def attention_fits(q: torch.Tensor, rows: int, head_dim: int, heads: int = 1) -> bool:
     """Whether the Triton attention kernel takes this call: few query rows per KV head (the
-    action stages), where library kernels leave most SMs idle (one program per 128 rows)."""
-    return triton_enabled(q) and head_dim in (64, 128, 256) and rows <= 1024 and q.dtype != torch.float32
+    action stages), where library kernels leave most SMs idle (one program per 128 rows).
+    ``heads`` = batch x KV heads: with enough of them the library kernels fill the GPU."""
+    if not (triton_enabled(q) and head_dim in (64, 128, 256) and q.dtype != torch.float32):
+        return False
+    lib_programs = heads * -(-rows // 128)
+    return rows <= ATTN_CFG["max_rows"] and not (ATTN_CFG["min_lib_programs"]
+                                                  and lib_programs >= ATTN_CFG["min_lib_programs"])
 
 
-def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor | None,
+                    ws: "Workspace | None" = None) -> torch.Tensor:
     """q ``[B, H, M, D]`` (any strides, last dim contiguous), k/v ``[B, H, L, D]``, bias additive
-    ``[B or 1, 1, M or 1, L]`` -> out ``[B, M, H, D]`` memory order, returned as ``[B, H, M, D]``."""
+    ``[B or 1, 1, M or 1, L]`` -> out ``[B, M, H, D]`` memory order, returned as ``[B, H, M, D]``.
+
+    With a workspace the split-KV partials are merged inside the same launch (see ``Workspace``)."""
     b, h, m, d = q.shape
     length = k.shape[2]
     out = torch.empty(b, m, h, d, device=q.device, dtype=q.dtype).transpose(1, 2)
-    block_m = 16
+    big = m > ATTN_CFG["big_rows"]  # prefill-sized: bigger query blocks
+    block_m = ATTN_CFG["big_block_m"] if big else 16
+    warps = ATTN_CFG["big_warps"] if big else 4
     has_bias = bias is not None
     if has_bias:
         b_sb = bias.stride(0) if bias.shape[0] > 1 else 0
         b_sm = bias.stride(2) if bias.shape[2] > 1 else 0
     else:
         bias, b_sb, b_sm = q, 0, 0
-    block_n = 64 if d <= 128 else 32
+    block_n = (64 if d <= 128 else 32) if not big else ATTN_CFG["big_block_n"]
     # Split the keys so that about one wave of programs covers the GPU: with a single KV
     # head (pi0) there are only ~25 query blocks, and a serial walk over all keys per
     # program is latency-bound.
@@ -262,12 +306,14 @@ def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: tor
     else:
         part = ml = out
     grid = (b * h, triton.cdiv(m, block_m), n_split)
+    fused_combine = split and ws is not None
+    cnt = ws.counters(grid[0] * grid[1]) if fused_combine else ml
     _attn_kernel[grid](q, k, v, bias, out, part, ml, m, length, h, split_len, d ** -0.5,
                        q.stride(0), q.stride(1), q.stride(2), k.stride(0), k.stride(1), k.stride(2),
                        v.stride(0), v.stride(1), v.stride(2), b_sb, b_sm, out.stride(0), out.stride(1), out.stride(2),
-                       HAS_BIAS=has_bias, SPLIT=split, D=d, BLOCK_M=block_m, BLOCK_N=block_n,
-                       num_warps=4, num_stages=2)
-    if split:
+                       cnt, HAS_BIAS=has_bias, SPLIT=split, D=d, BLOCK_M=block_m, BLOCK_N=block_n,
+                       FUSED_COMBINE=fused_combine, NS=n_split, num_warps=warps, num_stages=2)
+    if split and not fused_combine:
         _attn_combine[(b * h, triton.cdiv(m, block_m))](part, ml, out, m, h, out.stride(0), out.stride(1),
                                                          out.stride(2), NS=n_split, D=d, BLOCK_M=block_m,
                                                          num_warps=4)
@@ -340,3 +386,323 @@ def gated_act(x: torch.Tensor, act: str) -> torch.Tensor:
     _gated_act_kernel[(x2.shape[0], math.ceil(n / block))](
         x2, out, n, x2.stride(0), out.stride(0), BLOCK=block, GELU=act == "gelu_tanh", num_warps=4)
     return out.view(*x.shape[:-1], n)
+
+
+# --------------------------------------------------------------------------- skinny GEMMs
+#
+# The action stages multiply ~50-200 token rows by weights of 1-17 MB: the weights are the
+# bytes. Two kinds of Triton kernel for them:
+#
+# - ``linear_residual_splitk`` (used by pi0's and SmolVLA's action stages): ``residual +
+#   x W^T`` with split-K over all SMs. Each program writes its fp32 partial; the last of a
+#   tile's programs to arrive (an atomic counter) sums the partials in a fixed order, adds
+#   the residual and writes bf16: one launch instead of cuBLAS's GEMM + split-K reduce +
+#   the DtoD copy of the residual, and the result does not depend on arrival order (graph
+#   replays equal eager bit for bit). H100, batch 1, weights streamed from HBM: pi0 o-proj
+#   6.4 us (cuBLAS addmm 7.6), down 9.7 (11.3); SmolVLA o 5.0 (5.7), down 6.8 (7.7).
+# - ``norm_linear`` / ``norm_gated_mlp_in`` / ``norm_qkv``: RMSNorm folded into the GEMM
+#   (norm weight applied to the A tile as it loads, the row's sum of squares gathered along
+#   the K loop, 1/rms applied to the accumulator), with plain, gated-activation or
+#   QKV + RoPE + KV-cache epilogues. Exact and tested, but NOT used by the models yet: on
+#   the H100 they ran slower than cuBLAS + the separate norm (pi0 gate/up 17-22 us vs
+#   11.4 + 2.5; QKV 17 vs 10.3). They reach ~1 TB/s: too few weight bytes in flight per SM
+#   and the A tile re-read by every program. Kept as the starting point for that work.
+#
+# Counters live in a per-call ``Workspace`` (zeroed once per stage call, left at zero by
+# every kernel), so concurrent graphs of other models or batch sizes never share them.
+# No kernel waits on another program: correct on any number of SMs (green contexts).
+
+
+class Workspace:
+    """Per-stage-call scratch: arrival counters for the single-launch split reductions."""
+
+    def __init__(self, device: torch.device, size: int = 8192):
+        self.size = size
+        self._cnt = torch.zeros(size, dtype=torch.int32, device=device)
+
+    def counters(self, n: int) -> torch.Tensor:
+        assert n <= self.size, f"workspace too small: {n} > {self.size}"
+        return self._cnt
+
+
+def fast_gemm_ok(x: torch.Tensor, rows: int) -> bool:
+    """Whether the skinny-GEMM kernels take a call: CUDA, 16-bit, few rows."""
+    return triton_enabled(x) and x.dtype in (torch.bfloat16, torch.float16) and rows <= 512
+
+
+if triton is not None:
+
+    @triton.jit
+    def _norm_gemm_kernel(x_ptr, nw_ptr, w_ptr, bias_ptr, out_ptr, cos_ptr, sin_ptr, q_ptr, k_ptr, v_ptr,
+                          M, K, N1, S, stride_x, stride_w, stride_o, row2_off, eps,
+                          n_q, n_kv, cos_sb, cos_ss, q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh,
+                          MODE: tl.constexpr, NORM: tl.constexpr, HAS_BIAS: tl.constexpr, ROPE: tl.constexpr,
+                          HALF: tl.constexpr, BM: tl.constexpr, BN: tl.constexpr, BK: tl.constexpr):
+        # MODE 0: plain; 1: gated GELU(tanh); 2: gated SiLU; 3: QKV split with RoPE.
+        pid_m = tl.program_id(0)
+        pid_n = tl.program_id(1)
+        offs_m = pid_m * BM + tl.arange(0, BM)
+        m_ok = offs_m < M
+        j = pid_n * BN + tl.arange(0, BN)  # output unit: column (0), gate/up column (1, 2), pair (3)
+        j_ok = j < N1
+        if MODE == 3:
+            rows1 = 2 * j
+            rows2 = 2 * j + 1
+        else:
+            rows1 = j
+            rows2 = j + row2_off
+        acc1 = tl.zeros([BM, BN], tl.float32)
+        acc2 = tl.zeros([BM, BN], tl.float32)
+        ss = tl.zeros([BM], tl.float32)
+        for k0 in range(0, K, BK):
+            offs_k = k0 + tl.arange(0, BK)
+            k_ok = offs_k < K
+            a = tl.load(x_ptr + offs_m[:, None] * stride_x + offs_k[None, :], mask=m_ok[:, None] & k_ok[None, :],
+                        other=0.0)
+            if NORM:
+                af = a.to(tl.float32)
+                ss += tl.sum(af * af, 1)
+                nw = tl.load(nw_ptr + offs_k, mask=k_ok, other=0.0).to(tl.float32)
+                a = (af * nw[None, :]).to(w_ptr.dtype.element_ty)
+            w1 = tl.load(w_ptr + rows1[:, None] * stride_w + offs_k[None, :], mask=j_ok[:, None] & k_ok[None, :],
+                         other=0.0)
+            acc1 = tl.dot(a, tl.trans(w1), acc1)
+            if MODE != 0:
+                w2 = tl.load(w_ptr + rows2[:, None] * stride_w + offs_k[None, :],
+                             mask=j_ok[:, None] & k_ok[None, :], other=0.0)
+                acc2 = tl.dot(a, tl.trans(w2), acc2)
+        if NORM:
+            r = tl.rsqrt(ss / K + eps)
+            acc1 = acc1 * r[:, None]
+            acc2 = acc2 * r[:, None]
+        mask = m_ok[:, None] & j_ok[None, :]
+        if MODE == 0:
+            if HAS_BIAS:
+                acc1 += tl.load(bias_ptr + j, mask=j_ok, other=0.0).to(tl.float32)[None, :]
+            tl.store(out_ptr + offs_m[:, None] * stride_o + j[None, :], acc1.to(out_ptr.dtype.element_ty), mask=mask)
+        elif MODE == 3:
+            head = (pid_n * BN) // HALF  # BN divides HALF: one head per program
+            p = j - head * HALF
+            bi = offs_m // S
+            si = offs_m % S
+            y0 = acc1
+            y1 = acc2
+            if ROPE:
+                if head < n_q + n_kv:
+                    cs = bi[:, None] * cos_sb + si[:, None] * cos_ss + p[None, :]
+                    c = tl.load(cos_ptr + cs, mask=mask, other=0.0)
+                    sn = tl.load(sin_ptr + cs, mask=mask, other=0.0)
+                    y0 = acc1 * c - acc2 * sn
+                    y1 = acc1 * sn + acc2 * c
+            if head < n_q:
+                dst = q_ptr + bi * q_sb + si * q_ss + head * q_sh
+            elif head < n_q + n_kv:
+                dst = k_ptr + bi * k_sb + si * k_ss + (head - n_q) * k_sh
+            else:
+                dst = v_ptr + bi * v_sb + si * v_ss + (head - n_q - n_kv) * v_sh
+            tl.store(dst[:, None] + 2 * p[None, :], y0.to(q_ptr.dtype.element_ty), mask=mask)
+            tl.store(dst[:, None] + 2 * p[None, :] + 1, y1.to(q_ptr.dtype.element_ty), mask=mask)
+        else:
+            if MODE == 1:
+                g = acc1.to(out_ptr.dtype.element_ty).to(tl.float32)
+                act = g * tl.sigmoid(1.5957691216057308 * (g + 0.044715 * g * g * g))
+            else:
+                g = acc1.to(out_ptr.dtype.element_ty).to(tl.float32)
+                act = g * tl.sigmoid(g)
+            u = acc2.to(out_ptr.dtype.element_ty).to(tl.float32)
+            tl.store(out_ptr + offs_m[:, None] * stride_o + j[None, :], (act * u).to(out_ptr.dtype.element_ty),
+                     mask=mask)
+
+    @triton.jit
+    def _gemm_res_kernel(x_ptr, w_ptr, res_ptr, bias_ptr, out_ptr, part_ptr, cnt_ptr, M, N, K, k_chunk,
+                         stride_x, stride_w, stride_r, stride_o,
+                         HAS_BIAS: tl.constexpr, SPLIT: tl.constexpr, BM: tl.constexpr, BN: tl.constexpr,
+                         BK: tl.constexpr):
+        pid_m = tl.program_id(0)
+        pid_n = tl.program_id(1)
+        pid_s = tl.program_id(2)
+        offs_m = pid_m * BM + tl.arange(0, BM)
+        offs_n = pid_n * BN + tl.arange(0, BN)
+        m_ok = offs_m < M
+        n_ok = offs_n < N
+        acc = tl.zeros([BM, BN], tl.float32)
+        lo = pid_s * k_chunk
+        for k0 in range(lo, lo + k_chunk, BK):
+            offs_k = k0 + tl.arange(0, BK)
+            k_ok = offs_k < K
+            a = tl.load(x_ptr + offs_m[:, None] * stride_x + offs_k[None, :], mask=m_ok[:, None] & k_ok[None, :],
+                        other=0.0)
+            w = tl.load(w_ptr + offs_n[:, None] * stride_w + offs_k[None, :], mask=n_ok[:, None] & k_ok[None, :],
+                        other=0.0)
+            acc = tl.dot(a, tl.trans(w), acc)
+        mask = m_ok[:, None] & n_ok[None, :]
+        if SPLIT > 1:
+            tile = pid_m * tl.num_programs(1) + pid_n
+            loc = tl.arange(0, BM)[:, None] * BN + tl.arange(0, BN)[None, :]
+            tl.store(part_ptr + (tile * SPLIT + pid_s) * BM * BN + loc, acc)
+            tl.debug_barrier()
+            if tl.atomic_add(cnt_ptr + tile, 1, sem="acq_rel", scope="gpu") == SPLIT - 1:
+                acc = tl.zeros([BM, BN], tl.float32)
+                for sp in tl.static_range(SPLIT):
+                    acc += tl.load(part_ptr + (tile * SPLIT + sp) * BM * BN + loc, cache_modifier=".cg")
+                if HAS_BIAS:
+                    acc += tl.load(bias_ptr + offs_n, mask=n_ok, other=0.0).to(tl.float32)[None, :]
+                acc += tl.load(res_ptr + offs_m[:, None] * stride_r + offs_n[None, :], mask=mask, other=0.0).to(tl.float32)
+                tl.store(out_ptr + offs_m[:, None] * stride_o + offs_n[None, :], acc.to(out_ptr.dtype.element_ty),
+                         mask=mask)
+                tl.atomic_xchg(cnt_ptr + tile, 0, sem="relaxed", scope="gpu")
+        else:
+            if HAS_BIAS:
+                acc += tl.load(bias_ptr + offs_n, mask=n_ok, other=0.0).to(tl.float32)[None, :]
+            acc += tl.load(res_ptr + offs_m[:, None] * stride_r + offs_n[None, :], mask=mask, other=0.0).to(tl.float32)
+            tl.store(out_ptr + offs_m[:, None] * stride_o + offs_n[None, :], acc.to(out_ptr.dtype.element_ty), mask=mask)
+
+
+# Tunables (the GPU bench script overrides them to compare variants).
+# (BK 64, 4 stages, 4 warps, 32-wide N tiles, about one program per SM: best of the variants
+# timed on the H100 for pi0's and SmolVLA's o / down projections, see docs/RESULTS.md.)
+GEMM_CFG = {"bk": 64, "warps": 4, "stages": 4, "target": 1.0, "res_bn": 32, "bn": None, "split": None,
+            "res_bk": None, "res_stages": None, "res_warps": None, "max_rows": 128, "min_bytes_over_64_rows": 4e6}
+
+
+def _block_m(rows: int) -> int:
+    return max(16, min(128, triton.next_power_of_2(rows)))
+
+
+def _pick_bn(units: int, m_tiles: int, sm: int, choices=(64, 32, 16)) -> int:
+    """The widest dot tile that still gives about one program per SM."""
+    if GEMM_CFG["bn"] and GEMM_CFG["bn"] in choices:
+        return GEMM_CFG["bn"]
+    for bn in choices:
+        if m_tiles * triton.cdiv(units, bn) >= GEMM_CFG["target"] * sm:
+            return bn
+    return choices[-1]
+
+
+def _norm_linear_ref(x, norm_w, eps, weight, bias):
+    h = F.rms_norm(x, (x.shape[-1],), norm_w, eps) if norm_w is not None else x
+    return F.linear(h, weight, bias)
+
+
+def norm_linear(x: torch.Tensor, norm_w: torch.Tensor | None, eps: float, weight: torch.Tensor,
+                bias: torch.Tensor | None = None, ws: Workspace | None = None) -> torch.Tensor:
+    """``linear(rms_norm(x) * norm_w)`` (``norm_w`` None: no norm) -> ``[..., N]``."""
+    rows = x.numel() // x.shape[-1]
+    if not fast_gemm_ok(x, rows):
+        return _norm_linear_ref(x, norm_w, eps, weight, bias)
+    k = x.shape[-1]
+    x2 = x.reshape(rows, k)
+    n = weight.shape[0]
+    out = torch.empty(rows, n, device=x.device, dtype=x.dtype)
+    bm = _block_m(rows)
+    grid_m = triton.cdiv(rows, bm)
+    bn = _pick_bn(n, grid_m, _sm_count(x.device))
+    _norm_gemm_kernel[(grid_m, triton.cdiv(n, bn))](
+        x2, norm_w if norm_w is not None else x2, weight, bias if bias is not None else x2, out, x2, x2, x2, x2, x2,
+        rows, k, n, 1, x2.stride(0), weight.stride(0), out.stride(0), 0, eps,
+        0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+        MODE=0, NORM=norm_w is not None, HAS_BIAS=bias is not None, ROPE=False, HALF=1,
+        BM=bm, BN=bn, BK=GEMM_CFG["bk"], num_warps=GEMM_CFG["warps"], num_stages=GEMM_CFG["stages"])
+    return out.view(*x.shape[:-1], n)
+
+
+def norm_gated_mlp_in(x: torch.Tensor, norm_w: torch.Tensor | None, eps: float, weight: torch.Tensor,
+                      act: str, ws: Workspace | None = None) -> torch.Tensor:
+    """``act(h Wg^T) * (h Wu^T)`` with ``h = rms_norm(x) * norm_w`` and ``weight = [Wg; Wu]``."""
+    rows = x.numel() // x.shape[-1]
+    if not fast_gemm_ok(x, rows):
+        return _gated_act_ref(_norm_linear_ref(x, norm_w, eps, weight, None), act)
+    k = x.shape[-1]
+    x2 = x.reshape(rows, k)
+    f = weight.shape[0] // 2
+    out = torch.empty(rows, f, device=x.device, dtype=x.dtype)
+    bm = _block_m(rows)
+    grid_m = triton.cdiv(rows, bm)
+    bn = _pick_bn(f, grid_m, _sm_count(x.device), (32, 16))
+    _norm_gemm_kernel[(grid_m, triton.cdiv(f, bn))](
+        x2, norm_w if norm_w is not None else x2, weight, x2, out, x2, x2, x2, x2, x2,
+        rows, k, f, 1, x2.stride(0), weight.stride(0), out.stride(0), f, eps,
+        0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+        MODE=1 if act == "gelu_tanh" else 2, NORM=norm_w is not None, HAS_BIAS=False, ROPE=False, HALF=1,
+        BM=bm, BN=bn, BK=GEMM_CFG["bk"], num_warps=GEMM_CFG["warps"], num_stages=GEMM_CFG["stages"])
+    return out.view(*x.shape[:-1], f)
+
+
+def norm_qkv(x: torch.Tensor, norm_w: torch.Tensor, eps: float, weight: torch.Tensor, n_q: int, n_kv: int,
+             head_dim: int, k_out: torch.Tensor | None, v_out: torch.Tensor | None,
+             cos: torch.Tensor | None, sin: torch.Tensor | None, ws: Workspace | None = None) -> torch.Tensor:
+    """``split_qkv(linear(rms_norm(x) * norm_w, weight), ...)`` in one kernel: returns q
+    ``[B, S, n_q, D]`` and writes k / v into ``k_out`` / ``v_out`` (no bias, no QK-norm)."""
+    b, s, k = x.shape
+    rows = b * s
+    if not fast_gemm_ok(x, rows):
+        qkv = _norm_linear_ref(x, norm_w, eps, weight, None)
+        return _split_qkv_ref(qkv, n_q, n_kv, head_dim, cos, sin, None, None, eps, k_out, v_out)
+    assert weight.shape[0] == (n_q + 2 * n_kv) * head_dim and x.stride(2) == 1 and x.stride(0) == s * x.stride(1)
+    q = torch.empty(b, s, n_q, head_dim, device=x.device, dtype=x.dtype)
+    if n_kv == 0:
+        k_out = v_out = q
+        k_st = v_st = (0, 0, 0)
+    else:
+        assert k_out.stride(3) == 1 and v_out.stride(3) == 1
+        k_st = (k_out.stride(0), k_out.stride(2), k_out.stride(1))
+        v_st = (v_out.stride(0), v_out.stride(2), v_out.stride(1))
+    rope = cos is not None
+    if rope:
+        assert cos.stride(2) == 1 and cos.dtype == torch.float32 and cos.stride() == sin.stride()
+        cos_sb, cos_ss = (cos.stride(0) if cos.shape[0] > 1 else 0), cos.stride(1)
+    else:
+        cos = sin = x
+        cos_sb = cos_ss = 0
+    half = head_dim // 2
+    pairs = weight.shape[0] // 2
+    bm = _block_m(rows)
+    grid_m = triton.cdiv(rows, bm)
+    bn = _pick_bn(pairs, grid_m, _sm_count(x.device), tuple(c for c in (64, 32, 16) if half % c == 0) or (16,))
+    assert half % bn == 0
+    _norm_gemm_kernel[(grid_m, pairs // bn)](
+        x, norm_w, weight, x, q, cos, sin, q, k_out, v_out,
+        rows, k, pairs, s, x.stride(1), weight.stride(0), 0, 0, eps,
+        n_q, n_kv, cos_sb, cos_ss, q.stride(0), q.stride(1), q.stride(2), *k_st, *v_st,
+        MODE=3, NORM=True, HAS_BIAS=False, ROPE=rope, HALF=half,
+        BM=bm, BN=bn, BK=GEMM_CFG["bk"], num_warps=GEMM_CFG["warps"], num_stages=GEMM_CFG["stages"])
+    return q
+
+
+def linear_residual_splitk(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, residual: torch.Tensor,
+                           ws: Workspace | None) -> torch.Tensor:
+    """``residual + linear(x, weight, bias)`` (bf16 out, fp32 accumulation, one launch)."""
+    n, k = weight.shape
+    rows = residual.numel() // n
+    # Over 64 rows the A tile re-read by every N tile costs more than the small weights save:
+    # measured slower than cuBLAS for SmolVLA at batch 2 (1.4 / 2.9 MB), faster for pi0 (4.2 / 8.4 MB).
+    big_enough = rows <= 64 or weight.numel() * weight.element_size() >= GEMM_CFG["min_bytes_over_64_rows"]
+    if ws is None or not fast_gemm_ok(x, rows) or rows > GEMM_CFG["max_rows"] or not big_enough:
+        out = torch.addmm(residual.reshape(-1, n), x.reshape(-1, k), weight.t())
+        if bias is not None:
+            out += bias
+        return out.view(residual.shape)
+    x2 = x.reshape(rows, k)
+    r2 = residual.reshape(rows, n)
+    out = torch.empty(rows, n, device=x.device, dtype=residual.dtype)
+    bm = _block_m(rows)
+    bn = GEMM_CFG["res_bn"]
+    bk = GEMM_CFG["res_bk"] or GEMM_CFG["bk"]
+    grid_m, grid_n = triton.cdiv(rows, bm), triton.cdiv(n, bn)
+    sm = _sm_count(x.device)
+    split = GEMM_CFG["split"] or round(GEMM_CFG["target"] * sm / (grid_m * grid_n))
+    split = max(1, min(split, triton.cdiv(k, bk), 16))
+    chunk = triton.cdiv(triton.cdiv(k, split), bk) * bk
+    split = triton.cdiv(k, chunk)
+    if split > 1:
+        part = torch.empty(grid_m * grid_n * split * bm * bn, device=x.device, dtype=torch.float32)
+        cnt = ws.counters(grid_m * grid_n)
+    else:
+        part = cnt = out
+    _gemm_res_kernel[(grid_m, grid_n, split)](
+        x2, weight, r2, bias if bias is not None else x2, out, part, cnt, rows, n, k, chunk,
+        x2.stride(0), weight.stride(0), r2.stride(0), out.stride(0),
+        HAS_BIAS=bias is not None, SPLIT=split, BM=bm, BN=bn, BK=bk,
+        num_warps=GEMM_CFG["res_warps"] or GEMM_CFG["warps"], num_stages=GEMM_CFG["res_stages"] or GEMM_CFG["stages"])
+    return out.view(residual.shape)
+

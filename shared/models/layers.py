@@ -24,7 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from shared.models.fused import attention_fits, gated_act, small_attention, split_qkv  # noqa: F401
+from shared.models.fused import (Workspace, attention_fits, gated_act, linear_residual_splitk,  # noqa: F401
+                                 norm_gated_mlp_in, norm_linear, norm_qkv, small_attention, split_qkv)
 
 # --------------------------------------------------------------------------- init
 
@@ -184,13 +185,14 @@ def attn_bias(allowed: torch.Tensor, groups: int, dtype: torch.dtype) -> torch.T
     return bias
 
 
-def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor | None = None,
+              ws: Workspace | None = None) -> torch.Tensor:
     """q ``[B, S, n_q, D]``, k/v ``[B, n_kv, L, D]`` -> ``[B, S, n_q * D]`` (head h reads KV h % n_kv)."""
     b, s, n_q, d = q.shape
     n_kv = k.shape[1]
     qh = q.reshape(b, s * (n_q // n_kv), n_kv, d).transpose(1, 2)
-    if attention_fits(q, qh.shape[2], d):
-        o = small_attention(qh, k, v, bias)
+    if attention_fits(q, qh.shape[2], d, b * n_kv):
+        o = small_attention(qh, k, v, bias, ws)
     else:
         o = F.scaled_dot_product_attention(qh, k, v, attn_mask=bias)
     return o.transpose(1, 2).reshape(b, s, n_q * d)
@@ -361,13 +363,16 @@ class DecoderLayer(nn.Module):
     def forward(self, x: torch.Tensor, k_out: torch.Tensor, v_out: torch.Tensor,
                 rope: tuple[torch.Tensor, torch.Tensor] | None, bias: torch.Tensor | None,
                 k_all: torch.Tensor | None = None, v_all: torch.Tensor | None = None,
-                kv_only: bool = False) -> torch.Tensor:
+                kv_only: bool = False, ws: Workspace | None = None) -> torch.Tensor:
         """Writes this layer's K/V of ``x`` into ``k_out``/``v_out`` and attends over
         ``k_all``/``v_all`` (a cache that contains ``k_out``), or over ``k_out`` alone.
 
         ``kv_only`` stops after the K/V projection: the last prefix layer of a model whose
-        handoff is a KV cache needs nothing else.
+        handoff is a KV cache needs nothing else. With a workspace ``ws`` (the action stages)
+        the layer runs on the fused kernels (``forward_fused``).
         """
+        if ws is not None and not kv_only:
+            return self.forward_fused(x, k_out, v_out, rope, bias, k_all, v_all, ws)
         q = self.attn.project(self.attn_norm(x), k_out, v_out, rope)
         if kv_only:
             return x
@@ -375,6 +380,18 @@ class DecoderLayer(nn.Module):
         v = v_out if v_all is None else v_all
         x = linear_residual(attention(q, k, v, bias), self.attn.o, x)
         return self.mlp(self.mlp_norm(x), x)
+
+    def forward_fused(self, x, k_out, v_out, rope, bias, k_all, v_all, ws: Workspace) -> torch.Tensor:
+        """``forward`` with the action stages' fused kernels: the attention merges its split-KV
+        partials in-kernel and the o / down projections add the residual in a split-K Triton
+        GEMM (one launch each, no DtoD copy, no cuBLAS reduce kernel). Norms, QKV and gate/up
+        stay on cuBLAS (``norm_qkv`` / ``norm_gated_mlp_in`` measured slower, see fused.py)."""
+        q = self.attn.project(self.attn_norm(x), k_out, v_out, rope)
+        k = k_out if k_all is None else k_all
+        v = v_out if v_all is None else v_all
+        x = linear_residual_splitk(attention(q, k, v, bias, ws), self.attn.o.weight, self.attn.o.bias, x, ws)
+        h = gated_act(self.mlp.gate_up(self.mlp_norm(x)), self.mlp.act)
+        return linear_residual_splitk(h, self.mlp.down.weight, self.mlp.down.bias, x, ws)
 
 
 def camera_names(n: int) -> tuple[str, ...]:

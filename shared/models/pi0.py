@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from shared.models.base import Handoff, ModelIO, VLAModel
-from shared.models.layers import (DecoderLayer, RMSNorm, SigLIP, attn_bias, camera_names, euler_times,
+from shared.models.layers import (DecoderLayer, RMSNorm, SigLIP, Workspace, attn_bias, camera_names, euler_times,
                                   init_weights, rope_cos_sin, sincos_time)
 from shared.models.registry import register
 
@@ -150,6 +150,7 @@ class Pi0(VLAModel):
         step_bias = F.linear(sincos_time(t, w).to(dtype), w_time, e.time_mlp_in.bias + w_act @ e.action_in.bias)
         state_tok = e.state_proj(handoff["state"].to(dtype))[:, None]
 
+        ws = Workspace(dev)  # counters of the fused kernels' in-launch reductions
         x = noise.to(dtype)
         dt = -1.0 / c.steps
         for step in range(c.steps):
@@ -162,7 +163,7 @@ class Pi0(VLAModel):
             s = h.shape[1]
             for i, layer in enumerate(e.layers):
                 h = layer(h, kv[:, i, 0, :, off:off + s], kv[:, i, 1, :, off:off + s], rope, bs,
-                          kv[:, i, 0], kv[:, i, 1])
+                          kv[:, i, 0], kv[:, i, 1], ws=ws)
             v = e.action_out(e.norm(h[:, -hz:]))
             x = torch.add(x, v, alpha=dt)
         return x.to(noise.dtype)

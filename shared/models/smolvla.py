@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from shared.models.base import Handoff, ModelIO, VLAModel
-from shared.models.fused import split_qkv
+from shared.models.fused import Workspace, gated_act, linear_residual_splitk, split_qkv
 from shared.models.layers import (DecoderLayer, GatedMLP, RMSNorm, SigLIP, attention, attn_bias, camera_names,
                                   euler_times, init_weights, linear_residual, rope_cos_sin, sincos_time)
 from shared.models.registry import register
@@ -81,8 +81,12 @@ class CrossLayer(nn.Module):
         return proj(self.k_proj, k), proj(self.v_proj, v)
 
     def forward(self, x: torch.Tensor, ctx: tuple[torch.Tensor, torch.Tensor],
-                rope: tuple[torch.Tensor, torch.Tensor], bias: torch.Tensor) -> torch.Tensor:
+                rope: tuple[torch.Tensor, torch.Tensor], bias: torch.Tensor, ws: Workspace | None = None) -> torch.Tensor:
         q = split_qkv(self.q(self.attn_norm(x)), self.heads, 0, self.head_dim, None, None, *rope)
+        if ws is not None:  # fused attention merge and split-K residual GEMMs (DecoderLayer.forward_fused)
+            x = linear_residual_splitk(attention(q, ctx[0], ctx[1], bias, ws), self.o.weight, self.o.bias, x, ws)
+            h = gated_act(self.mlp.gate_up(self.mlp_norm(x)), self.mlp.act)
+            return linear_residual_splitk(h, self.mlp.down.weight, self.mlp.down.bias, x, ws)
         x = linear_residual(attention(q, ctx[0], ctx[1], bias), self.o, x)
         return self.mlp(self.mlp_norm(x), x)
 
@@ -191,6 +195,7 @@ class SmolVLA(VLAModel):
         w_fold = w_act @ e.action_in.weight
         step_bias = F.linear(sincos_time(t, w).to(dtype), w_time, e.time_mlp_in.bias + w_act @ e.action_in.bias)
 
+        ws = Workspace(dev)
         x = noise.to(dtype)
         dt = -1.0 / c.steps
         for step in range(c.steps):
@@ -199,8 +204,9 @@ class SmolVLA(VLAModel):
             for i, layer in enumerate(e.layers):
                 if i % 2 == 0:
                     j = i // 2
-                    h = layer(h, kv[:, j, 0, :, lp:], kv[:, j, 1, :, lp:], rope, bias_joint, kv[:, j, 0], kv[:, j, 1])
+                    h = layer(h, kv[:, j, 0, :, lp:], kv[:, j, 1, :, lp:], rope, bias_joint, kv[:, j, 0], kv[:, j, 1],
+                              ws=ws)
                 else:
-                    h = layer(h, ctx[i // 2], rope, bias_cross)
+                    h = layer(h, ctx[i // 2], rope, bias_cross, ws=ws)
             x = torch.add(x, e.action_out(e.norm(h)), alpha=dt)
         return x.to(noise.dtype)

@@ -126,3 +126,139 @@ def test_small_attention_matches_sdpa(b, h, m, length, d, rows):
     out = fused.small_attention(q, k, v, bias)
     ref = F.scaled_dot_product_attention(q.float(), k.float(), v.float(), attn_mask=None if bias is None else bias.float())
     torch.testing.assert_close(out.float(), ref, atol=2e-2, rtol=2e-2)
+
+
+# --------------------------------------------------------------------------- fused skinny GEMMs
+
+
+def _rel(a, b):
+    return ((a.float() - b.float()).norm() / b.float().norm()).item()
+
+
+def _ref(fn):
+    old = fused.set_triton(False)
+    try:
+        return fn()
+    finally:
+        fused.set_triton(old)
+
+
+@needs_cuda
+@pytest.mark.parametrize("rows", [1, 50, 51, 102, 204, 300])
+@pytest.mark.parametrize("k,n", [(1024, 32), (720, 96), (2048, 2560)])
+def test_norm_linear_matches_reference(rows, k, n):
+    g = torch.Generator(device="cuda").manual_seed(rows + k)
+    x = torch.randn(rows, k, device="cuda", generator=g).bfloat16()
+    nw = (torch.rand(k, device="cuda", generator=g) + 0.5).bfloat16()
+    w = (torch.randn(n, k, device="cuda", generator=g) / k ** 0.5).bfloat16()
+    bias = torch.randn(n, device="cuda", generator=g).bfloat16()
+    for norm in (nw, None):
+        fast = fused.norm_linear(x, norm, 1e-6, w, bias)
+        ref = fused._norm_linear_ref(x.double(), None if norm is None else norm.double(), 1e-6, w.double(),
+                                     bias.double())
+        assert _rel(fast, ref) < 1e-2
+
+
+@needs_cuda
+@pytest.mark.parametrize("rows", [51, 102, 204])
+@pytest.mark.parametrize("k,f,act", [(1024, 4096, "gelu_tanh"), (720, 2048, "silu")])
+def test_norm_gated_mlp_in_matches_reference(rows, k, f, act):
+    g = torch.Generator(device="cuda").manual_seed(rows)
+    x = torch.randn(1, rows, k, device="cuda", generator=g).bfloat16()
+    nw = (torch.rand(k, device="cuda", generator=g) + 0.5).bfloat16()
+    w = (torch.randn(2 * f, k, device="cuda", generator=g) / k ** 0.5).bfloat16()
+    out = torch.full((1, rows, f), float("nan"), device="cuda", dtype=torch.bfloat16)
+    out.copy_(fused.norm_gated_mlp_in(x, nw, 1e-6, w, act))
+    ref = fused._gated_act_ref(fused._norm_linear_ref(x.double(), nw.double(), 1e-6, w.double(), None), act)
+    assert torch.isfinite(out).all() and _rel(out, ref) < 1e-2
+
+
+@needs_cuda
+@pytest.mark.parametrize("b,s,n_q,n_kv,d,k", [(1, 51, 8, 1, 256, 1024), (2, 50, 8, 1, 256, 1024),
+                                              (1, 50, 15, 5, 64, 720), (4, 50, 15, 5, 64, 720),
+                                              (2, 50, 15, 0, 64, 720)])
+def test_norm_qkv_matches_reference(b, s, n_q, n_kv, d, k):
+    g = torch.Generator(device="cuda").manual_seed(s + n_q)
+    x = torch.randn(b, s, k, device="cuda", generator=g).bfloat16()
+    nw = (torch.rand(k, device="cuda", generator=g) + 0.5).bfloat16()
+    w = (torch.randn((n_q + 2 * n_kv) * d, k, device="cuda", generator=g) / k ** 0.5).bfloat16()
+    ang = torch.rand(b, s, d // 2, device="cuda", generator=g) * 6
+    cos, sin = ang.cos(), ang.sin()
+    extra = 7
+
+    def run(dtype, xx, nn, ww):
+        cache = torch.full((b, 2, 2, max(n_kv, 1), s + extra, d), float("nan"), device="cuda", dtype=dtype)
+        cache[..., :extra, :] = 0
+        k_out, v_out = (cache[:, 1, 0, :, extra:], cache[:, 1, 1, :, extra:]) if n_kv else (None, None)
+        q = fused.norm_qkv(xx, nn, 1e-6, ww, n_q, n_kv, d, k_out, v_out, cos, sin)
+        return q, cache[:, 1]
+
+    q1, c1 = run(torch.bfloat16, x, nw, w)
+    q2, c2 = _ref(lambda: run(torch.float64, x.double(), nw.double(), w.double()))
+    assert _rel(q1, q2) < 1e-2
+    if n_kv:
+        assert torch.isfinite(c1).all() and _rel(c1, c2) < 1e-2
+
+
+@needs_cuda
+@pytest.mark.parametrize("rows", [1, 51, 102, 204, 300])
+@pytest.mark.parametrize("k,n", [(2048, 1024), (4096, 1024), (960, 720), (2048, 720), (64, 48)])
+def test_linear_residual_splitk_matches_reference(rows, k, n):
+    g = torch.Generator(device="cuda").manual_seed(rows * 7 + k)
+    x = torch.randn(rows, k, device="cuda", generator=g).bfloat16()
+    w = (torch.randn(n, k, device="cuda", generator=g) / k ** 0.5).bfloat16()
+    r = torch.randn(rows, n, device="cuda", generator=g).bfloat16()
+    bias = torch.randn(n, device="cuda", generator=g).bfloat16()
+    ws = fused.Workspace(torch.device("cuda"))
+    outs = [fused.linear_residual_splitk(x, w, bias, r, ws) for _ in range(3)]
+    ref = torch.addmm(r.double(), x.double(), w.double().t()) + bias.double()
+    assert _rel(outs[0], ref) < 1e-2
+    assert all(torch.equal(o, outs[0]) for o in outs)  # fixed reduction order: deterministic
+    assert int(ws._cnt.abs().sum()) == 0  # counters left at zero
+
+
+@needs_cuda
+@pytest.mark.parametrize("b,h,m,length,d,rows", [(1, 1, 408, 611, 256, 408), (2, 1, 400, 611, 256, 1),
+                                                 (2, 5, 150, 227, 64, 150), (1, 5, 150, 177, 64, 1)])
+def test_small_attention_fused_combine(b, h, m, length, d, rows):
+    import torch.nn.functional as F
+    from shared.models.layers import attn_bias
+
+    g = torch.Generator(device="cuda").manual_seed(m + length)
+    q = torch.randn(b, m, h, d, device="cuda", generator=g).bfloat16().transpose(1, 2)
+    kv = torch.randn(b, 2, 2, h, length + 3, d, device="cuda", generator=g).bfloat16()
+    k, v = kv[:, 1, 0, :, :length], kv[:, 1, 1, :, :length]
+    allowed = torch.rand(b, max(rows, 1), length, device="cuda", generator=g) > 0.3
+    allowed[..., 0] = True
+    bias = attn_bias(allowed, 1, torch.bfloat16)
+    ws = fused.Workspace(torch.device("cuda"))
+    out = fused.small_attention(q, k, v, bias, ws)
+    ref = F.scaled_dot_product_attention(q.double(), k.double(), v.double(), attn_mask=bias.double())
+    assert _rel(out, ref) < 1e-2
+    assert torch.equal(out, fused.small_attention(q, k, v, bias, ws))
+    assert int(ws._cnt.abs().sum()) == 0
+
+
+@needs_cuda
+@pytest.mark.parametrize("arch", ["pi0", "smolvla"])
+def test_full_action_stage_fused_matches_reference(arch):
+    """The whole action stage on the fused kernels vs the plain PyTorch ops, full size, bf16,
+    with random (non-identity) norm weights so that the norm folding is exercised."""
+    torch.cuda.empty_cache()
+    m = build_model(arch, "full", seed=0, device="cuda")
+    g = torch.Generator(device="cuda").manual_seed(5)
+    with torch.no_grad():
+        for name, p in m.expert.named_parameters():
+            if "norm" in name:
+                p.copy_(torch.rand(p.shape, device="cuda", generator=g) + 0.5)
+    b = 2
+    images, state, tokens = m.example_inputs(b, generator=torch.Generator().manual_seed(0))
+    tokens[0, 10:] = 0
+    noise = m.noise(b, generator=torch.Generator().manual_seed(1)).bfloat16()
+    with torch.inference_mode():
+        h = m.vlm_stage(images, state, tokens)
+        fast, ref = _both_paths(lambda: m.action_stage(h, noise))
+    assert torch.isfinite(fast).all()
+    assert _rel(fast, ref) < 2e-2, _rel(fast, ref)
+    del m
+    torch.cuda.empty_cache()
