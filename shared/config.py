@@ -89,6 +89,11 @@ class EngineConfig:
     handoff_slots: int = field(default=4, metadata=_check(_positive, "expected a positive integer"))
     # procdisagg: groups of max_batch handoff slots per model in the inter-stage buffer
     procdisagg_workers: str = "process"  # procdisagg: stages as "process"es (CUDA IPC) or "thread"s (debugging)
+    # interdisagg (both required there): the devices of its VLM workers and of its action workers,
+    # one worker per entry: "cuda:0,cuda:1", or indices "0,1" = cuda:0,cuda:1; "+" separates too,
+    # so a list fits in bench/capacity.py --engines, where "," and ":" are taken; "cpu" on a CPU.
+    vlm_devices: str = ""
+    action_devices: str = ""
 
 
 @dataclass
@@ -170,7 +175,7 @@ def dial_address(bind: str, connect: str | None = None) -> str:
 
 
 STRATEGIES = ("ip", "smg", "eps", "none")
-ENGINE_KINDS = ("monolithic", "robion", "disagg", "static", "disjoint", "procdisagg")  # ENGINES in engine.py
+ENGINE_KINDS = ("monolithic", "robion", "disagg", "static", "disjoint", "procdisagg", "interdisagg")  # ENGINES in engine.py
 PROCDISAGG_WORKERS = ("process", "thread")
 POLICIES = ("esf", "rr", "lqf")
 SM_POLICIES = ("table", "none", "static")
@@ -306,6 +311,31 @@ def _validate_engine(e: EngineConfig) -> None:
     if e.running_batch and e.running_batch < e.max_batch:
         raise ConfigError(f"engine.running_batch: must be at least max_batch ({e.max_batch}), or 0 for 4 x max_batch")
     _one_of(e.procdisagg_workers, PROCDISAGG_WORKERS, "engine.procdisagg_workers")
+    for key in ("vlm_devices", "action_devices"):
+        try:
+            parse_devices(getattr(e, key), required=e.kind == "interdisagg")
+        except ValueError as exc:
+            raise ConfigError(f"engine.{key}: {exc}") from None
+
+
+def parse_devices(text: str, required: bool = False) -> list[str]:
+    """A device list of engine interdisagg -> torch device strings, one per stage worker.
+
+    Entries are separated by ",", "+" or spaces; each is "cpu", "cuda:N" or a bare index N
+    (= "cuda:N"). ``"0+1"`` -> ``["cuda:0", "cuda:1"]``. A device may repeat (two workers on
+    it). Raises ValueError with the reason.
+    """
+    out = []
+    for item in filter(None, (s.strip() for s in text.replace("+", ",").replace(" ", ",").split(","))):
+        if item.isdigit():
+            out.append(f"cuda:{int(item)}")
+        elif item == "cpu" or (item.startswith("cuda:") and item[5:].isdigit()):
+            out.append(item)
+        else:
+            raise ValueError(f"{item!r} is not a device (expected 'cpu', 'cuda:N' or an index N)")
+    if required and not out:
+        raise ValueError("engine interdisagg needs at least one device, e.g. 'cuda:0' or '0+1' ('cpu' on a CPU)")
+    return out
 
 
 def _expand_placement(data: Any) -> Any:

@@ -18,7 +18,9 @@ from shared.models import build_model
 from shared.protocol import ErrorCode
 
 CPU = torch.device("cpu")
-KINDS = ["monolithic", "robion", "disagg", "static", "disjoint", "procdisagg"]
+KINDS = ["monolithic", "robion", "disagg", "static", "disjoint", "procdisagg", "interdisagg"]
+# Knobs a kind cannot start without (interdisagg: its stage devices; two action workers on the CPU).
+NEEDS = {"interdisagg": {"vlm_devices": "cpu", "action_devices": "cpu+cpu"}}
 
 
 def make_req(model, name: str, rid: str, rng: np.random.Generator, deadline_s: float = 60.0) -> Request:
@@ -61,7 +63,8 @@ def test_every_kind_is_registered_once_and_valid_in_config():
     for kind in KINDS:
         assert engine_class(kind).__name__.endswith("Engine")
         cfg = config_from_dict({"models": [{"name": "t", "arch": "toy"}],
-                                "executors": [{"name": "e", "models": ["t"]}], "engine": {"kind": kind}})
+                                "executors": [{"name": "e", "models": ["t"]}],
+                                "engine": {"kind": kind, **NEEDS.get(kind, {})}})
         assert cfg.engine.kind == kind
 
 
@@ -119,7 +122,7 @@ def test_step_adapter_equals_action_stage_with_rows_at_different_steps(arch):
 def _serve(kind: str, models: dict, reqs: list[Request], **cfg) -> tuple[object, Sink]:
     sink = Sink()
     served = {name: ServedModel(name, m, 5.0) for name, m in models.items()}
-    eng = make_engine(served, EngineConfig(kind=kind, max_batch=4, **cfg), CPU, sink)
+    eng = make_engine(served, EngineConfig(kind=kind, max_batch=4, **NEEDS.get(kind, {}), **cfg), CPU, sink)
     eng.prepare()
     stop = threading.Event()
     th = threading.Thread(target=eng.run, args=(stop,), daemon=True)
@@ -168,7 +171,8 @@ def test_procdisagg_merges_arrivals_into_running_batch_threads():
 def test_shutdown_answers_everything(kind):
     m = build_model("toy", "tiny", seed=1)
     sink = Sink()
-    eng = make_engine({"toy": ServedModel("toy", m, 5.0)}, EngineConfig(kind=kind, max_batch=2), CPU, sink)
+    eng = make_engine({"toy": ServedModel("toy", m, 5.0)}, EngineConfig(kind=kind, max_batch=2, **NEEDS.get(kind, {})),
+                      CPU, sink)
     eng.prepare()
     rng = np.random.default_rng(2)
     reqs = [make_req(m, "toy", str(i), rng) for i in range(9)]
@@ -191,7 +195,7 @@ def test_shutdown_answers_everything(kind):
 @pytest.mark.parametrize("kind", KINDS)
 def test_harness_drives_each_kind(kind):
     models = {"toy": ServedModel("toy", build_model("toy", "tiny", seed=0), 0.5)}
-    host = EngineHost(engine_factory(kind, models, "cpu", max_batch=2), label=kind)
+    host = EngineHost(engine_factory(kind, models, "cpu", max_batch=2, **NEEDS.get(kind, {})), label=kind)
     try:
         res = simulate(host, [RobotGroup("toy", 4, 10.0)], SimConfig(epochs=2, duration_s=0.6, drain_s=0.5))
     finally:

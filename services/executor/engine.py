@@ -214,6 +214,7 @@ ENGINES: dict[str, type[Engine] | str] = {
     "static": "services.executor.baselines.lockstep_variants:StaticEngine",
     "disjoint": "services.executor.baselines.lockstep_variants:DisjointEngine",
     "procdisagg": "services.executor.baselines.procdisagg:ProcDisaggEngine",
+    "interdisagg": "services.executor.baselines.interdisagg:InterDisaggEngine",
 }
 
 
