@@ -214,6 +214,13 @@ def test_screened_search_goes_on_below_a_candidate_that_fails_its_full_run():
     assert [n for n, _ in trace[first_full:]] == [40, 39, 37, 33, 35, 34]
 
 
+@pytest.mark.parametrize("start,max_robots,screen_ok,full_ok", [(32, 256, 82, 18), (4, 16, 6, 2), (1, 64, 3, 1)])
+def test_screened_search_gallops_down_to_one_robot_if_it_must(start, max_robots, screen_ok, full_ok):
+    s = CapacitySearch(0.98, start, max_robots, screen_epochs=1, full_epochs=5)
+    _run_screened(s, lambda n, epochs: n <= (screen_ok if epochs == 1 else full_ok))
+    assert s.capacity == full_ok
+
+
 def test_screened_search_where_no_full_run_passes_ends_at_zero():
     s = CapacitySearch(0.98, 4, 16, screen_epochs=1, full_epochs=5)
     _run_screened(s, lambda n, epochs: epochs == 1 and n <= 6)

@@ -154,6 +154,7 @@ class Stats:
     p50_ms: float = float("nan")  # end-to-end latency of the answered requests; over epochs: mean
     p99_ms: float = float("nan")
     server_p50_ms: float = float("nan")
+    screened: bool = False  # a screening point of a search (fewer epochs than a full run)
     epoch_slo_attainment: list[float] = field(default_factory=list)  # only in the mean over epochs
     epoch_p99_ms: list[float] = field(default_factory=list)
 
@@ -536,6 +537,7 @@ class Point:
     no_reply: int
     submit_lag_max_ms: float
     wall_s: float
+    screened: bool = False  # a screening point of a search (fewer epochs than a full run)
     epoch_slo_attainment: list[float] = field(default_factory=list)
     epoch_p99_ms: list[float] = field(default_factory=list)
     telemetry: list[dict | None] = field(default_factory=list)
@@ -553,7 +555,8 @@ class CapacitySearch:
     and only the candidate is then measured with every epoch (``epochs_next`` says which).
     Short points can be optimistic (one epoch sees one draw of the robots' phases), so
     once a candidate fails its full run every later point runs all epochs: galloping down
-    from that failure (1, 2, 4, ... robots below it) to a full pass, then bisecting.
+    (1, 2, 4, ... robots below the latest failure, at least one robot) to a full pass, then
+    bisecting.
     """
 
     def __init__(self, target: float = 0.98, start: int = 1, max_robots: int = 256, growth: float = 2.0,
@@ -630,10 +633,10 @@ class CapacitySearch:
     def _record_full(self) -> None:
         assert self.hi is not None
         passes = [p.robots for p in self.full_points if p.passed and p.robots < self.hi]
-        if not passes:  # gallop down from the failure
+        if not passes:  # gallop down from the latest failure, never below one robot
             self.lo = 0
             self._step = max(1, 2 * self._step)
-            self._next = self.hi - self._step if self.hi - self._step >= 1 else None
+            self._next = max(1, self.hi - self._step) if self.hi > 1 else None
             return
         self.lo = max(passes)
         mid = (self.lo + self.hi) // 2
@@ -737,6 +740,7 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
                 epochs = search.epochs_next() if isinstance(search, CapacitySearch) else None
                 point_sim = sim if epochs is None else dataclasses.replace(sim, epochs=epochs)
                 point = measure_point(hosts[name], model, n, hz, point_sim, target, early_stop)
+                point.screened = epochs is not None
                 search.record(point)
                 log.info("%s %s %d robots: SLO-AT %.3f p99 %.1f ms%s", model, name, n, point.slo_attainment,
                          point.p99_ms, "" if point.passed else " (fail)")
