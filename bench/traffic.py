@@ -117,8 +117,11 @@ def measure_limit(v: Variant, size: str, device: str, engine: dict, sim: dict, t
     key = (v.arch, v.hz, v.slo_ms)
     if key not in cache:
         served = {v.name: ServedModel(v.name, _model(v.arch, size, v.seed, device), v.slo_ms / 1e3)}
+        # Screened search (one-epoch bracketing, full runs on the candidate): the limits are
+        # most of this experiment's GPU time otherwise.
         res = find_capacity(engine_factory(engine["kind"], served, device, **{k: x for k, x in engine.items() if k != "kind"}),
-                            v.name, hz=v.hz, sim=SimConfig(**sim), target=target, max_robots=max_robots)
+                            v.name, hz=v.hz, sim=SimConfig(**sim), target=target, start=min(8, max_robots),
+                            max_robots=max_robots, screen_epochs=1 if sim.get("epochs", 5) > 1 else None)
         cache[key] = max(1, res.capacity)
     return cache[key]
 
@@ -219,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--robots", default="32,48,64", help="placements: total robot counts")
     p.add_argument("--deadline", type=float, default=0.0, help="deadline in ms (default: the paper's for --arch)")
     p.add_argument("--target", type=float, default=0.98)
-    p.add_argument("--max-robots", type=int, default=128)
+    p.add_argument("--max-robots", type=int, default=256, help="limit search: most robots per GPU")
     p.add_argument("--epochs", type=int, default=3)
     p.add_argument("--duration", type=float, default=10.0)
     p.add_argument("--limit-epochs", type=int, default=2)
@@ -240,7 +243,9 @@ def main(argv: list[str] | None = None) -> int:
     result = run(args, engine, sim, limit_sim, devices)
     import torch
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    # A tree shipped to a GPU host names its commit in ROBION_COMMIT (its .git may be another's).
+    commit = os.environ.get("ROBION_COMMIT") or subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
     result["meta"] = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit,
                       "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",
                       "devices": devices, "torch": torch.__version__, "wall_s": round(time.monotonic() - t0, 1),
