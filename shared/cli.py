@@ -84,7 +84,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 BENCHMARKS = {"capacity": "capacity.py", "router-hop": "router_hop.py", "solver": "solver_speed.py",
               "models": "model_latency.py", "engine-gap": "engine_gap.py", "colocation": "colocation.py",
-              "traffic": "traffic.py"}
+              "traffic": "traffic.py", "interdisagg": "interdisagg.py"}
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
