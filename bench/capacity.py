@@ -122,6 +122,15 @@ def _git(*args: str) -> str | None:
         return None
 
 
+def source_commit(short: bool = False) -> str | None:
+    """The commit the measured code came from.
+
+    A copy of the tree shipped to a GPU host names its commit in ROBION_COMMIT: its own
+    .git, if it has one, need not be the one the tree came from.
+    """
+    return os.environ.get("ROBION_COMMIT") or _git("rev-parse", *(["--short"] if short else []), "HEAD")
+
+
 def meta(device: str) -> dict:
     import torch
 
@@ -131,9 +140,7 @@ def meta(device: str) -> dict:
     return {
         "gpu": gpu, "device": device, "cpu": platform.processor() or platform.machine(), "host": platform.node(),
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        # A copy of the tree shipped to a GPU host names its commit in ROBION_COMMIT: its own
-        # .git, if it has one, need not be the one the tree came from.
-        "commit": os.environ.get("ROBION_COMMIT") or _git("rev-parse", "HEAD"),
+        "commit": source_commit(),
         "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
         "command": " ".join([os.path.relpath(sys.argv[0], ROOT) if sys.argv[0] else "bench/capacity.py",
                              *sys.argv[1:]]),

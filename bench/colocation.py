@@ -16,12 +16,12 @@ import argparse
 import datetime
 import json
 import os
-import subprocess
 import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # sibling bench modules (capacity)
 
 PAPER_DEADLINES_MS = {"pi0": 156.0, "xr0": 117.0, "smolvla": 50.0, "groot_n15": 53.0}
 
@@ -97,9 +97,9 @@ def run(args) -> dict:
                       f"p99 {res.overall.p99_ms:7.1f} ms", flush=True)
         for h in hosts.values():
             h.close()
-    # A tree shipped to a GPU host names its commit in ROBION_COMMIT (its .git may be another's).
-    commit = os.environ.get("ROBION_COMMIT") or subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    from capacity import source_commit
+
+    commit = source_commit(short=True) or ""
     meta = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit,
             "device": torch.cuda.get_device_name(0) if device.startswith("cuda") else "cpu", "torch": torch.__version__,
             "size": args.size, "hz": args.hz, "epochs": args.epochs, "duration_s": args.duration,

@@ -19,13 +19,13 @@ import datetime
 import json
 import multiprocessing as mp
 import os
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # sibling bench modules (capacity)
 
 from services.controlplane.solver import ModelDemand, PlanProblem, solve  # noqa: E402
 
@@ -121,7 +121,7 @@ def measure_limit(v: Variant, size: str, device: str, engine: dict, sim: dict, t
         # most of this experiment's GPU time otherwise.
         res = find_capacity(engine_factory(engine["kind"], served, device, **{k: x for k, x in engine.items() if k != "kind"}),
                             v.name, hz=v.hz, sim=SimConfig(**sim), target=target, start=min(8, max_robots),
-                            max_robots=max_robots, screen_epochs=1 if sim.get("epochs", 5) > 1 else None)
+                            max_robots=max_robots, screen_epochs=1)
         cache[key] = max(1, res.capacity)
     return cache[key]
 
@@ -243,9 +243,9 @@ def main(argv: list[str] | None = None) -> int:
     result = run(args, engine, sim, limit_sim, devices)
     import torch
 
-    # A tree shipped to a GPU host names its commit in ROBION_COMMIT (its .git may be another's).
-    commit = os.environ.get("ROBION_COMMIT") or subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    from capacity import source_commit
+
+    commit = source_commit(short=True) or ""
     result["meta"] = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit,
                       "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",
                       "devices": devices, "torch": torch.__version__, "wall_s": round(time.monotonic() - t0, 1),

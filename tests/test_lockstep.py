@@ -203,25 +203,32 @@ def test_fine_tuned_variants_share_profile_key():
     assert profile_key(build_model("toy", "full")) == "toy:full"
 
 
-def test_threaded_serving_loses_nothing_and_shutdown_answers_everything():
-    model = build_model("toy", seed=1)
-    sink = Collector()
-    eng, _ = engine_for({"toy": (model, 1.0)}, max_batch=2, sink=sink)
+def stop_mid_traffic(eng, model, count: int) -> list:
+    """Run ``eng`` in a thread, submit ``count`` toy requests in small bursts, stop it while
+    work is still queued and in flight, and return the requests once the thread has ended."""
     stop = threading.Event()
     t = threading.Thread(target=eng.run, args=(stop,))
     t.start()
     rng = np.random.default_rng(5)
     reqs = []
-    for i in range(40):
+    for i in range(count):
         r = make_req(model, str(i), rng)
         r.model = "toy"
         reqs.append(r)
         eng.submit(r)
         if i % 7 == 0:
             time.sleep(0.002)
-    stop.set()  # stop while work is queued and in flight
+    stop.set()
     t.join(30)
     assert not t.is_alive()
+    return reqs
+
+
+def test_threaded_serving_loses_nothing_and_shutdown_answers_everything():
+    model = build_model("toy", seed=1)
+    sink = Collector()
+    eng, _ = engine_for({"toy": (model, 1.0)}, max_batch=2, sink=sink)
+    reqs = stop_mid_traffic(eng, model, 40)
     assert sink.ids() == sorted(r.id for r in reqs)  # every request answered exactly once
     served = [r for r in sink.results if r.error is None]
     refused = [r for r in sink.results if r.error is not None]
@@ -450,21 +457,7 @@ def test_launch_ahead_multi_model_esf_and_sm_levels():
 def test_launch_ahead_threaded_serving_and_shutdown_answer_everything():
     model = build_model("toy", seed=1)
     eng, sink = ahead_engine({"toy": (model, 1.0)}, max_batch=2)
-    stop = threading.Event()
-    t = threading.Thread(target=eng.run, args=(stop,))
-    t.start()
-    rng = np.random.default_rng(5)
-    reqs = []
-    for i in range(60):
-        r = make_req(model, str(i), rng)
-        r.model = "toy"
-        reqs.append(r)
-        eng.submit(r)
-        if i % 7 == 0:
-            time.sleep(0.002)
-    stop.set()
-    t.join(30)
-    assert not t.is_alive()
+    reqs = stop_mid_traffic(eng, model, 60)
     assert sink.ids() == sorted(r.id for r in reqs)
     served = [r for r in sink.results if r.error is None]
     assert served and all(r.error[0] == ErrorCode.UNAVAILABLE for r in sink.results if r.error is not None)

@@ -145,6 +145,22 @@ def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_tabl
     return path, fresh
 
 
+def time_lockstep(runner, vst, vb: int, ast, ab: int, level: Level, repeats: int, warmup: int = 2) -> float:
+    """Median duration (ms) of one lockstep with the engine's runner: ``ast``'s action stage at
+    batch ``ab`` beside ``vst``'s VLM stage at batch ``vb`` on ``level`` SMs (after ``warmup`` runs)."""
+    samples = []
+    for i in range(warmup + repeats):
+        runner.begin(i)
+        runner.launch_handoff(ast, ab)
+        runner.launch_action(ast, ab, 0)
+        runner.launch_vlm(vst, vb, level, after_handoff=ast is vst and ab == vb)
+        runner.end_launch()
+        runner.wait()
+        if i >= warmup:
+            samples.append(runner.measure(i, False).duration_ms)
+    return statistics.median(samples)
+
+
 def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], combos: list[Combo],
             table: SMTable, repeats: int = 5, warmup: int = 2, progress: bool = True) -> SMTable:
     """Time every combo at every level with the engine's runner; add the entries to ``table``.
@@ -167,17 +183,7 @@ def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], 
             ast = by_arch[aa]
             times: dict[str, float] = {}
             for level in levels:
-                samples = []
-                for i in range(warmup + repeats):
-                    runner.begin(i)
-                    runner.launch_handoff(ast, ab)
-                    runner.launch_action(ast, ab, 0)
-                    runner.launch_vlm(vst, vb, level, after_handoff=ast is vst and ab == vb)
-                    runner.end_launch()
-                    runner.wait()
-                    if i >= warmup:
-                        samples.append(runner.measure(i, False).duration_ms)
-                times[level_name(level)] = statistics.median(samples)
+                times[level_name(level)] = time_lockstep(runner, vst, vb, ast, ab, level, repeats, warmup)
                 bar.update()
             best = min(levels, key=lambda lv: times[level_name(lv)])
             entry = ProfileEntry(va, vb, aa, ab, best, times[level_name(best)], times["none"], times)
@@ -239,4 +245,4 @@ if __name__ == "__main__":
     main()
 
 
-__all__ = ["SMTable", "ProfileEntry", "locate_table", "missing_combos", "profile", "parse_level"]
+__all__ = ["SMTable", "ProfileEntry", "locate_table", "missing_combos", "profile", "parse_level", "time_lockstep"]

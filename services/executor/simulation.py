@@ -154,7 +154,6 @@ class Stats:
     p50_ms: float = float("nan")  # end-to-end latency of the answered requests; over epochs: mean
     p99_ms: float = float("nan")
     server_p50_ms: float = float("nan")
-    screened: bool = False  # a screening point of a search (fewer epochs than a full run)
     epoch_slo_attainment: list[float] = field(default_factory=list)  # only in the mean over epochs
     epoch_p99_ms: list[float] = field(default_factory=list)
 
@@ -668,6 +667,10 @@ class SweepSearch:
     def next(self) -> int | None:
         return self.todo[0] if self.todo else None
 
+    def epochs_next(self) -> None:
+        """A sweep measures every count with all epochs."""
+        return None
+
     def record(self, point: Point) -> None:
         self.points.append(point)
         if point.robots in self.todo:
@@ -737,7 +740,7 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
                     continue
                 if bar is not None:
                     bar.set_postfix_str(f"{name} @ {n} robots")
-                epochs = search.epochs_next() if isinstance(search, CapacitySearch) else None
+                epochs = search.epochs_next()
                 point_sim = sim if epochs is None else dataclasses.replace(sim, epochs=epochs)
                 point = measure_point(hosts[name], model, n, hz, point_sim, target, early_stop)
                 point.screened = epochs is not None

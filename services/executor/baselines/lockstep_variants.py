@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from services.executor.lockstep import CudaRunner, LockstepEngine, batch_sizes
+from services.executor.profiler import time_lockstep
 from services.executor.sm import SM_GRANULARITY, StaticLevel, Unrestricted, sm_count, split_disjoint
 
 log = logging.getLogger(__name__)
@@ -111,20 +112,8 @@ def _time_partition(part, stages: dict, runner, combos: list, sizes: list[int],
         st.capture_action()
         for b in sizes:
             st.capture_vlm(b, {None})
-    per: dict[str, float] = {}
-    for va, vb, aa, ab in combos:
-        vst, ast = stages[va], stages[aa]
-        samples = []
-        for i in range(2 + repeats):
-            runner.begin(i)
-            runner.launch_handoff(ast, ab)
-            runner.launch_action(ast, ab, 0)
-            runner.launch_vlm(vst, vb, None, after_handoff=ast is vst and ab == vb)
-            runner.end_launch()
-            runner.wait()
-            if i >= 2:
-                samples.append(runner.measure(i, False).duration_ms)
-        per[f"{va}x{vb}|{aa}x{ab}"] = statistics.median(samples)
+    per = {f"{va}x{vb}|{aa}x{ab}": time_lockstep(runner, stages[va], vb, stages[aa], ab, None, repeats)
+           for va, vb, aa, ab in combos}
     return statistics.mean(per.values()), per
 
 
