@@ -5,10 +5,15 @@ every GPU's workload is simulated through its own engine (services/executor/simu
 on several GPUs at once (--devices cuda:0,cuda:1,...) or one after another on one GPU. The
 router hop, measured separately (docs/RESULTS.md), is not part of these numbers.
 
-    # experiment 6: 4 fine-tuned variants at 1/2/2/4 Hz on 4 GPUs, SMG vs EPS vs the integer program
-    python bench/traffic.py strategies --arch pi0 --size full --gpus 4 --devices cuda:0 --out bench/results/traffic_strategies.json
-    # experiment 7: 4 + 4 variants of two architectures, Mix vs disjoint groups, over total robot counts
-    python bench/traffic.py placements --arch pi0 --arch2 xr0 --size full --gpus 4 --robots 32,48,64 --devices cuda:0 --out ...
+    # the robot limits both experiments need, measured on all devices at once into a cache file
+    python bench/traffic.py limits --arch pi0 --arch2 xr0 --rates 1,2,4 --hz 2 --devices cuda:0,cuda:1,cuda:2,cuda:3 \
+        --limits-cache bench/results/traffic_limits.json
+    # experiment 6: 4 fine-tuned variants at 1/2/2/4 Hz, equal robots, 90% of 4 GPUs; SMG vs EPS vs the integer program
+    python bench/traffic.py strategies --arch pi0 --devices cuda:0,cuda:1,cuda:2,cuda:3 \
+        --limits-cache bench/results/traffic_limits.json --out bench/results/traffic_strategies.json
+    # experiment 7: 4 + 4 variants of two architectures, Mix vs disjoint groups, at shares of the GPUs' capacity
+    python bench/traffic.py placements --arch pi0 --arch2 xr0 --loads 0.8,0.9,1.0 --devices cuda:0,cuda:1,cuda:2,cuda:3 \
+        --limits-cache bench/results/traffic_limits.json --out bench/results/traffic_placements.json
 """
 
 from __future__ import annotations
@@ -71,59 +76,129 @@ def _model(arch: str, size: str, seed: int, device: str):
     return _MODELS[key]
 
 
+_HOST: dict[tuple, object] = {}  # this worker's prepared engine, keyed by what it serves
+
+
+def _engine_host(job: GpuJob, device: str):
+    """The prepared engine for the models this GPU hosts, reused while the next job hosts the
+    same ones (graph capture and profiling once per placement, not per run); one at a time."""
+    from services.executor.engine import ServedModel
+    from services.executor.simulation import EngineHost, engine_factory
+
+    key = (device, tuple(v.name for v in job.models), tuple(sorted(job.engine.items())))
+    if key not in _HOST:
+        for old in _HOST.values():
+            old.close()
+        _HOST.clear()
+        served = {v.name: ServedModel(v.name, _model(v.arch, job.size, v.seed, device), v.slo_ms / 1e3)
+                  for v in job.models}
+        _HOST[key] = EngineHost(engine_factory(job.engine["kind"], served, device,
+                                               **{k: x for k, x in job.engine.items() if k != "kind"}),
+                                label=f"gpu{job.gpu}")
+    return _HOST[key]
+
+
 def run_gpu(job: GpuJob, device: str) -> dict:
-    """Simulate one GPU's assigned robots through an engine serving just its models."""
+    """Simulate one GPU's assigned robots through an engine serving the models it hosts."""
     import torch
 
-    from services.executor.engine import ServedModel
-    from services.executor.simulation import RobotGroup, SimConfig, engine_factory, simulate
+    from services.executor.simulation import RobotGroup, SimConfig, simulate
 
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
     active = [v for v in job.models if job.robots.get(v.name, 0) > 0]
     if not active:
         return {"label": job.label, "gpu": job.gpu, "sent": 0, "met": 0, "models": {}}
-    served = {v.name: ServedModel(v.name, _model(v.arch, job.size, v.seed, device), v.slo_ms / 1e3) for v in active}
     workload = [RobotGroup(v.name, job.robots[v.name], v.hz) for v in active]
-    result = simulate(engine_factory(job.engine["kind"], served, device, **{k: x for k, x in job.engine.items() if k != "kind"}),
-                      workload, SimConfig(**job.sim))
+    result = simulate(_engine_host(job, device), workload, SimConfig(**job.sim))
     return {"label": job.label, "gpu": job.gpu, "sent": result.overall.sent, "met": result.overall.met,
             "slo_attainment": result.overall.slo_attainment, "submit_lag_max_ms": result.submit_lag_max_ms,
             "models": {m: {"robots": job.robots[m], "sent": s.sent, "met": s.met, "slo_attainment": s.slo_attainment,
                            "p99_ms": s.p99_ms} for m, s in result.models.items()}}
 
 
-def run_jobs(jobs: list[GpuJob], devices: list[str]) -> list[dict]:
-    """Jobs on several devices at once (one process each), or in this process on one device."""
-    if len(devices) == 1:
-        return [run_gpu(job, devices[0]) for job in jobs]
-    ctx = mp.get_context("spawn")
-    out: list[dict] = []
-    with cf.ProcessPoolExecutor(max_workers=len(devices), mp_context=ctx) as pool:
-        for start in range(0, len(jobs), len(devices)):
-            wave = jobs[start:start + len(devices)]
-            out.extend(pool.map(run_gpu, wave, devices[:len(wave)]))
-    return out
+class DevicePool:
+    """One worker process per device, kept for the whole experiment, so each device builds its
+    models once (a shared pool would move jobs between devices and keep several copies of the
+    weights on one GPU). With one device everything runs in this process, one job after another."""
+
+    def __init__(self, devices: list[str]):
+        self.devices = devices
+        ctx = mp.get_context("spawn")
+        self._pools = ([cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) for _ in devices]
+                       if len(devices) > 1 else [])
+
+    def run(self, calls: list[tuple[int, object, tuple]]) -> list:
+        """``(slot, fn, args)`` calls, each on device ``slot % len(devices)`` (as ``fn(*args, device)``);
+        calls on different devices run at once. Results in call order."""
+        if not self._pools:
+            return [fn(*args, self.devices[0]) for _, fn, args in calls]
+        futures = [self._pools[slot % len(self._pools)].submit(fn, *args, self.devices[slot % len(self.devices)])
+                   for slot, fn, args in calls]
+        return [f.result() for f in futures]
+
+    def close(self) -> None:
+        for pool in self._pools:
+            pool.shutdown()
+
+
+def run_jobs(jobs: list[GpuJob], pool: DevicePool) -> list[dict]:
+    """Each GPU's job on device ``gpu % devices``: the GPUs of the modelled server run at once
+    when there are as many devices, one after another otherwise."""
+    return pool.run([(job.gpu, run_gpu, (job,)) for job in jobs])
 
 
 # ----------------------------------------------------------------------------- limits and assignments
 
-def measure_limit(v: Variant, size: str, device: str, engine: dict, sim: dict, target: float, max_robots: int,
-                  cache: dict) -> int:
-    """C_i of a variant at its rate (cached per architecture and rate: variants share it)."""
+def measure_limit(v: Variant, size: str, engine: dict, sim: dict, target: float, start: int, max_robots: int,
+                  device: str) -> int:
+    """C_i of a variant at its rate on ``device``: the screened capacity search of one engine
+    serving only this variant (one-epoch bracketing, full runs on the candidate)."""
     from services.executor.engine import ServedModel
     from services.executor.simulation import SimConfig, engine_factory, find_capacity
 
-    key = (v.arch, v.hz, v.slo_ms)
-    if key not in cache:
-        served = {v.name: ServedModel(v.name, _model(v.arch, size, v.seed, device), v.slo_ms / 1e3)}
-        # Screened search (one-epoch bracketing, full runs on the candidate): the limits are
-        # most of this experiment's GPU time otherwise.
-        res = find_capacity(engine_factory(engine["kind"], served, device, **{k: x for k, x in engine.items() if k != "kind"}),
-                            v.name, hz=v.hz, sim=SimConfig(**sim), target=target, start=min(8, max_robots),
-                            max_robots=max_robots, screen_epochs=1)
-        cache[key] = max(1, res.capacity)
-    return cache[key]
+    if device.startswith("cuda"):
+        import torch
+
+        torch.cuda.set_device(torch.device(device))
+    served = {v.name: ServedModel(v.name, _model(v.arch, size, v.seed, device), v.slo_ms / 1e3)}
+    res = find_capacity(engine_factory(engine["kind"], served, device, **{k: x for k, x in engine.items() if k != "kind"}),
+                        v.name, hz=v.hz, sim=SimConfig(**sim), target=target, start=min(start, max_robots),
+                        max_robots=max_robots, screen_epochs=1, progress=False)
+    return max(1, res.capacity)
+
+
+def limit_key(gpu: str, v: Variant, size: str, engine: dict, target: float) -> str:
+    """Variants of one architecture share a limit at the same rate and deadline."""
+    return "|".join([gpu, f"{v.arch}:{size}", f"{v.hz:g}Hz", f"mb{engine['max_batch']}", f"{v.slo_ms:g}ms",
+                     engine["kind"], f"at{target:g}"])
+
+
+def measure_limits(variants: list[Variant], args, engine: dict, limit_sim: dict, pool: DevicePool, gpu: str) -> float:
+    """Fill ``limit`` of every variant from the cache file, measuring the missing (architecture,
+    rate) pairs on all devices at once; returns the seconds spent measuring."""
+    from services.executor.limits import LimitCache
+
+    cache = LimitCache(args.limits_cache) if args.limits_cache else None
+    known = {k: e["limit"] for k, e in (cache.read() if cache else {}).items()}
+    missing: dict[str, Variant] = {}
+    for v in variants:
+        key = limit_key(gpu, v, args.size, engine, args.target)
+        if key not in known:
+            missing.setdefault(key, v)
+    t0 = time.monotonic()
+    if missing:
+        print(f"measuring {len(missing)} robot limits on {len(pool.devices)} device(s): "
+              + ", ".join(f"{v.arch} at {v.hz:g} Hz" for v in missing.values()), flush=True)
+        found = pool.run([(i, measure_limit, (v, args.size, engine, limit_sim, args.target, args.limit_start,
+                                               args.max_robots)) for i, v in enumerate(missing.values())])
+        for key, limit in zip(missing, found):
+            known[key] = limit
+            if cache:
+                cache.write(key, {"limit": limit, "sim": limit_sim, "date": datetime.date.today().isoformat()})
+    for v in variants:
+        v.limit = known[limit_key(gpu, v, args.size, engine, args.target)]
+    return time.monotonic() - t0
 
 
 def assignment(variants: list[Variant], gpus: int, strategy: str) -> tuple[dict[str, dict[int, int]], dict]:
@@ -155,26 +230,25 @@ def summarize(label: str, results: list[dict], extra: dict) -> dict:
 # ----------------------------------------------------------------------------- experiments
 
 def populations(variants: list[Variant], gpus: int, load: float, shares: list[float]) -> None:
-    """N_i so the variants together ask for ``load`` x ``gpus`` GPU-equivalents, split by ``shares``."""
-    total = sum(shares)
+    """Robots N_i in proportion to ``shares``, scaled so that together they ask for ``load`` x
+    ``gpus`` GPU-equivalents (N_i / C_i summed). Equal shares at different rates is the paper's
+    case: the fast variant needs more GPU than the slow ones for the same robots."""
+    scale = load * gpus / sum(s / v.limit for v, s in zip(variants, shares))
     for v, s in zip(variants, shares):
-        v.robots = max(1, round(load * gpus * s / total * v.limit))
+        v.robots = max(1, round(s * scale))
 
 
-def exp_strategies(args, engine: dict, sim: dict, limit_sim: dict, devices: list[str]) -> dict:
+def exp_strategies(args, engine: dict, sim: dict, limit_sim: dict, pool: DevicePool, gpu: str) -> dict:
     rates = [float(x) for x in args.rates.split(",")]
     variants = [Variant(f"{args.arch}-ft{i}", args.arch, i + 1, hz, args.deadline or PAPER_DEADLINES_MS[args.arch],
                         gpus=tuple(range(args.gpus))) for i, hz in enumerate(rates)]
-    cache: dict = {}
-    t0 = time.monotonic()
-    for v in variants:
-        v.limit = measure_limit(v, args.size, devices[0], engine, limit_sim, args.target, args.max_robots, cache)
-    limits_s = time.monotonic() - t0
+    limits_s = measure_limits(variants, args, engine, limit_sim, pool, gpu)
     populations(variants, args.gpus, args.load, [float(x) for x in args.shares.split(",")])
     rows = []
     for strategy in ("smg", "eps", "ip"):
         assign, info = assignment(variants, args.gpus, strategy)
-        results = run_jobs(jobs_for(strategy, variants, assign, args.gpus, args.size, engine, sim), devices)
+        print(f"running {strategy}: {assign}", flush=True)
+        results = run_jobs(jobs_for(strategy, variants, assign, args.gpus, args.size, engine, sim), pool)
         rows.append(summarize(strategy, results, {"assignment": assign, **info}))
     ip = next(r for r in rows if r["label"] == "ip")
     for r in rows:
@@ -182,31 +256,52 @@ def exp_strategies(args, engine: dict, sim: dict, limit_sim: dict, devices: list
     return {"variants": [v.__dict__ for v in variants], "limits_s": limits_s, "rows": rows}
 
 
-def exp_placements(args, engine: dict, sim: dict, limit_sim: dict, devices: list[str]) -> dict:
+def placement_variants(args) -> list[Variant]:
+    return [Variant(f"{a}-ft{i}", a, i + 1, args.hz, PAPER_DEADLINES_MS[a]) for a in (args.arch, args.arch2)
+            for i in range(4)]
+
+
+def exp_placements(args, engine: dict, sim: dict, limit_sim: dict, pool: DevicePool, gpu: str) -> dict:
     archs = [args.arch, args.arch2]
-    variants = [Variant(f"{a}-ft{i}", a, i + 1, args.hz, PAPER_DEADLINES_MS[a]) for a in archs for i in range(4)]
-    cache: dict = {}
-    for v in variants:
-        v.limit = measure_limit(v, args.size, devices[0], engine, limit_sim, args.target, args.max_robots, cache)
+    variants = placement_variants(args)
+    limits_s = measure_limits(variants, args, engine, limit_sim, pool, gpu)
     g = args.gpus
+    if args.loads:
+        # Equal populations: a total of N robots asks for N x mean(1 / C_i) GPU-equivalents.
+        mean_inv = sum(1 / v.limit for v in variants) / len(variants)
+        totals = [round(float(x) * g / mean_inv) for x in args.loads.split(",")]
+    else:
+        totals = [int(x) for x in args.robots.split(",")]
     placements = {"mix": {a: tuple(range(g)) for a in archs}}
     for k in range(1, g):
         placements[f"gr-{k}:{g - k}"] = {archs[0]: tuple(range(k)), archs[1]: tuple(range(k, g))}
     rows = []
-    for total in [int(x) for x in args.robots.split(",")]:
-        for label, hosts in placements.items():
+    # Placement-major, so each GPU prepares the engine for its hosted models once per placement.
+    for label, hosts in placements.items():
+        for total in totals:
             for i, v in enumerate(variants):
                 v.gpus = hosts[v.arch]
                 v.robots = total // len(variants) + (1 if i < total % len(variants) else 0)
             assign, info = assignment(variants, g, "ip")
-            results = run_jobs(jobs_for(label, variants, assign, g, args.size, engine, sim), devices)
+            print(f"running {label} with {total} robots: {assign}", flush=True)
+            results = run_jobs(jobs_for(label, variants, assign, g, args.size, engine, sim), pool)
             rows.append(summarize(label, results, {"robots": total, "assignment": assign, **info}))
-    return {"variants": [{**v.__dict__, "gpus": None} for v in variants], "rows": rows}
+    return {"variants": [{**v.__dict__, "gpus": None} for v in variants], "limits_s": limits_s, "rows": rows}
+
+
+def exp_limits(args, engine: dict, sim: dict, limit_sim: dict, pool: DevicePool, gpu: str) -> dict:
+    """The limits both experiments need, measured at once into --limits-cache."""
+    slo = args.deadline or PAPER_DEADLINES_MS[args.arch]
+    variants = [Variant(f"{args.arch}@{x}", args.arch, 1, float(x), slo) for x in dict.fromkeys(args.rates.split(","))]
+    variants += [v for v in placement_variants(args)[::4] if (v.arch, v.hz) not in {(x.arch, x.hz) for x in variants}]
+    limits_s = measure_limits(variants, args, engine, limit_sim, pool, gpu)
+    return {"variants": [v.__dict__ for v in variants], "limits_s": limits_s, "rows": []}
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("experiment", choices=["strategies", "placements"])
+    p.add_argument("experiment", choices=["strategies", "placements", "limits"],
+                   help="limits: measure the limits both experiments need into --limits-cache, on all devices at once")
     p.add_argument("--arch", default="pi0")
     p.add_argument("--arch2", default="xr0")
     p.add_argument("--size", default="full")
@@ -216,17 +311,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-batch", type=int, default=2)
     p.add_argument("--sm-table", default=None)
     p.add_argument("--rates", default="1,2,2,4", help="strategies: request rate of each variant")
-    p.add_argument("--shares", default="1,1,1,1", help="strategies: share of the load of each variant")
+    p.add_argument("--shares", default="1,1,1,1", help="strategies: share of the robots of each variant")
     p.add_argument("--load", type=float, default=0.9, help="strategies: demand as a share of total GPU capacity")
     p.add_argument("--hz", type=float, default=2.0, help="placements: request rate")
     p.add_argument("--robots", default="32,48,64", help="placements: total robot counts")
+    p.add_argument("--loads", default="", help="placements: total demand as shares of the GPUs' capacity, "
+                   "e.g. 0.8,0.9,1.0 (instead of --robots)")
     p.add_argument("--deadline", type=float, default=0.0, help="deadline in ms (default: the paper's for --arch)")
     p.add_argument("--target", type=float, default=0.98)
     p.add_argument("--max-robots", type=int, default=256, help="limit search: most robots per GPU")
     p.add_argument("--epochs", type=int, default=3)
     p.add_argument("--duration", type=float, default=10.0)
+    p.add_argument("--drain", type=float, default=1.0, help="seconds replies may still come after each epoch")
     p.add_argument("--limit-epochs", type=int, default=2)
     p.add_argument("--limit-duration", type=float, default=5.0)
+    p.add_argument("--limit-start", type=int, default=8, help="limit search: first robot count")
+    p.add_argument("--limits-cache", default="", help="JSON file of measured limits, read and extended")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="")
     args = p.parse_args(argv)
@@ -236,23 +336,32 @@ def main(argv: list[str] | None = None) -> int:
     engine = {"kind": args.engine, "max_batch": args.max_batch}
     if args.sm_table:
         engine["sm_table"] = args.sm_table
-    sim = {"epochs": args.epochs, "duration_s": args.duration, "seed": args.seed}
-    limit_sim = {"epochs": args.limit_epochs, "duration_s": args.limit_duration, "seed": args.seed}
-    t0 = time.monotonic()
-    run = exp_strategies if args.experiment == "strategies" else exp_placements
-    result = run(args, engine, sim, limit_sim, devices)
+    sim = {"epochs": args.epochs, "duration_s": args.duration, "drain_s": args.drain, "seed": args.seed}
+    limit_sim = {"epochs": args.limit_epochs, "duration_s": args.limit_duration, "drain_s": args.drain,
+                 "seed": args.seed}
     import torch
 
+    gpu = torch.cuda.get_device_name(torch.device(devices[0])) if devices[0].startswith("cuda") else "cpu"
+    t0 = time.monotonic()
+    run = {"strategies": exp_strategies, "placements": exp_placements, "limits": exp_limits}[args.experiment]
+    pool = DevicePool(devices)
+    try:
+        result = run(args, engine, sim, limit_sim, pool, gpu)
+    finally:
+        pool.close()
     from capacity import source_commit
 
     commit = source_commit(short=True) or ""
     result["meta"] = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit,
-                      "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",
+                      "device": gpu,
                       "devices": devices, "torch": torch.__version__, "wall_s": round(time.monotonic() - t0, 1),
                       "command": "python bench/traffic.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(result, fh, indent=2, default=str)
+    for v in result["variants"]:
+        print(f"limit {v['name']:<12} {v['hz']:g} Hz: {v['limit']} robots per GPU" + (f", {v['robots']} robots"
+                                                                                    if v["robots"] else ""))
     print(f"{'run':<12}{'robots':>7}{'sent':>8}{'misses':>8}{'SLO-AT':>9}{'vs IP':>8}  assignment")
     for r in result["rows"]:
         robots = r.get("robots", sum(v["robots"] for v in result["variants"]))

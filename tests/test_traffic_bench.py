@@ -38,3 +38,34 @@ def test_placements_experiment(tmp_path):
     assert labels == ["mix", "gr-1:1"]
     group = r["rows"][1]["assignment"]
     assert all(set(per) <= {"0"} if m.startswith("pi0") else set(per) <= {"1"} for m, per in group.items())
+
+
+def test_limits_from_cache_file_set_equal_populations(tmp_path):
+    """Cached limits are used as they are (nothing measured); equal robot shares at 1/2/2/4 Hz
+    ask for load x GPUs GPU-equivalents in all."""
+    cache = tmp_path / "limits.json"
+    limits = {1: 12, 2: 6, 4: 3}
+    cache.write_text(json.dumps({f"cpu|pi0:tiny|{hz}Hz|mb2|156ms|monolithic|at0.98": {"limit": c}
+                                 for hz, c in limits.items()}))
+    out = tmp_path / "r.json"
+    res = subprocess.run([sys.executable, "bench/traffic.py", "strategies", "--arch", "pi0", *FAST, "--load", "3",
+                          "--limits-cache", str(cache), "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "measuring" not in res.stdout
+    variants = json.loads(out.read_text())["variants"]
+    assert [v["limit"] for v in variants] == [12, 6, 6, 3]
+    # 3 x 2 GPUs = N (1/12 + 2/6 + 1/3) GPU-equivalents: N = 8 robots of each variant
+    assert [v["robots"] for v in variants] == [8, 8, 8, 8]
+
+
+def test_limits_experiment_measures_each_rate_once(tmp_path):
+    cache = tmp_path / "limits.json"
+    res = subprocess.run([sys.executable, "bench/traffic.py", "limits", "--arch", "pi0", "--arch2", "xr0",
+                          "--rates", "1,2,4", "--hz", "2", *FAST, "--devices", "cpu,cpu", "--limits-cache", str(cache)],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    keys = sorted(json.loads(cache.read_text()))
+    assert keys == sorted(f"cpu|{a}:tiny|{hz}Hz|mb2|{d}ms|monolithic|at0.98"
+                          for a, hz, d in [("pi0", 1, 156), ("pi0", 2, 156), ("pi0", 4, 156), ("xr0", 2, 117)])
+    assert all(1 <= e["limit"] <= 4 for e in json.loads(cache.read_text()).values())

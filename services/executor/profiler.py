@@ -22,6 +22,7 @@ import hashlib
 import importlib
 import json
 import logging
+import os
 import re
 import statistics
 import time
@@ -74,7 +75,7 @@ class SMTable:
     def save(self, path: str | Path) -> None:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")  # executors sharing a profile dir may save at once
         tmp.write_text(json.dumps(dataclasses.asdict(self), indent=1) + "\n")
         tmp.replace(path)
 
