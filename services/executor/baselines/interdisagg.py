@@ -210,6 +210,16 @@ class InterDisaggEngine(Engine):
     # ------------------------------------------------------------------ start-up
 
     def prepare(self) -> None:
+        # Start-up makes each worker's device current in turn; the caller's thread gets its
+        # own back (its later kernels, e.g. Triton launches, go to the current device).
+        previous = torch.cuda.current_device() if any(w.cuda for w in self.vlm_workers + self.action_workers) else None
+        try:
+            self._prepare()
+        finally:
+            if previous is not None:
+                torch.cuda.set_device(previous)
+
+    def _prepare(self) -> None:
         from services.executor.lockstep import batch_sizes
 
         sizes = batch_sizes(self.cfg.max_batch)
