@@ -79,17 +79,26 @@ def _model(arch: str, size: str, seed: int, device: str):
 _HOST: dict[tuple, object] = {}  # this worker's prepared engine, keyed by what it serves
 
 
+def release_engine(keep: frozenset = frozenset()) -> None:
+    """Close this worker's engine and drop the weights not in ``keep`` (GPU memory back for the
+    next models; weights the next engine uses again are kept)."""
+    for host in _HOST.values():
+        host.close()
+    _HOST.clear()
+    for key in set(_MODELS) - keep:
+        del _MODELS[key]
+
+
 def _engine_host(job: GpuJob, device: str):
-    """The prepared engine for the models this GPU hosts, reused while the next job hosts the
-    same ones (graph capture and profiling once per placement, not per run); one at a time."""
+    """The prepared engine for the models this GPU hosts, reused while the next job on this
+    device hosts the same ones: with a device per modelled GPU, graph capture and profiling
+    happen once per placement, not once per run. One engine at a time per worker."""
     from services.executor.engine import ServedModel
     from services.executor.simulation import EngineHost, engine_factory
 
     key = (device, tuple(v.name for v in job.models), tuple(sorted(job.engine.items())))
     if key not in _HOST:
-        for old in _HOST.values():
-            old.close()
-        _HOST.clear()
+        release_engine(frozenset((v.arch, job.size, v.seed, device) for v in job.models))
         served = {v.name: ServedModel(v.name, _model(v.arch, job.size, v.seed, device), v.slo_ms / 1e3)
                   for v in job.models}
         _HOST[key] = EngineHost(engine_factory(job.engine["kind"], served, device,
@@ -130,16 +139,23 @@ class DevicePool:
 
     def run(self, calls: list[tuple[int, object, tuple]]) -> list:
         """``(slot, fn, args)`` calls, each on device ``slot % len(devices)`` (as ``fn(*args, device)``);
-        calls on different devices run at once. Results in call order."""
+        calls on different devices run at once. Results in call order; the first failure is raised."""
         if not self._pools:
             return [fn(*args, self.devices[0]) for _, fn, args in calls]
         futures = [self._pools[slot % len(self._pools)].submit(fn, *args, self.devices[slot % len(self.devices)])
                    for slot, fn, args in calls]
-        return [f.result() for f in futures]
+        try:
+            return [f.result() for f in futures]
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
 
     def close(self) -> None:
+        if not self._pools:
+            release_engine()
         for pool in self._pools:
-            pool.shutdown()
+            pool.shutdown(cancel_futures=True)
 
 
 def run_jobs(jobs: list[GpuJob], pool: DevicePool) -> list[dict]:
@@ -155,16 +171,20 @@ def measure_limit(v: Variant, size: str, engine: dict, sim: dict, target: float,
     """C_i of a variant at its rate on ``device``: the screened capacity search of one engine
     serving only this variant (one-epoch bracketing, full runs on the candidate)."""
     from services.executor.engine import ServedModel
-    from services.executor.simulation import SimConfig, engine_factory, find_capacity
+    from services.executor.simulation import EngineHost, SimConfig, engine_factory, find_capacity
 
     if device.startswith("cuda"):
         import torch
 
         torch.cuda.set_device(torch.device(device))
     served = {v.name: ServedModel(v.name, _model(v.arch, size, v.seed, device), v.slo_ms / 1e3)}
-    res = find_capacity(engine_factory(engine["kind"], served, device, **{k: x for k, x in engine.items() if k != "kind"}),
-                        v.name, hz=v.hz, sim=SimConfig(**sim), target=target, start=min(start, max_robots),
-                        max_robots=max_robots, screen_epochs=1, progress=False)
+    host = EngineHost(engine_factory(engine["kind"], served, device, **{k: x for k, x in engine.items() if k != "kind"}),
+                      label=f"limit {v.arch} {v.hz:g} Hz")
+    try:
+        res = find_capacity(host, v.name, hz=v.hz, sim=SimConfig(**sim), target=target, start=min(start, max_robots),
+                            max_robots=max_robots, screen_epochs=1, progress=False)
+    finally:
+        host.close()  # graphs and buffers freed before the experiment's engines are built
     return max(1, res.capacity)
 
 
@@ -310,10 +330,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--engine", default="robion")
     p.add_argument("--max-batch", type=int, default=2)
     p.add_argument("--sm-table", default=None)
-    p.add_argument("--rates", default="1,2,2,4", help="strategies: request rate of each variant")
+    p.add_argument("--rates", default="1,2,2,4", help="strategies: request rate of each variant; limits: the "
+                   "rates to measure --arch at")
     p.add_argument("--shares", default="1,1,1,1", help="strategies: share of the robots of each variant")
     p.add_argument("--load", type=float, default=0.9, help="strategies: demand as a share of total GPU capacity")
-    p.add_argument("--hz", type=float, default=2.0, help="placements: request rate")
+    p.add_argument("--hz", type=float, default=2.0, help="placements (and limits): request rate")
     p.add_argument("--robots", default="32,48,64", help="placements: total robot counts")
     p.add_argument("--loads", default="", help="placements: total demand as shares of the GPUs' capacity, "
                    "e.g. 0.8,0.9,1.0 (instead of --robots)")
@@ -330,6 +351,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="")
     args = p.parse_args(argv)
+    if args.experiment == "limits" and not args.limits_cache:
+        p.error("limits: --limits-cache is needed (the file the measured limits go to)")
     if args.deadline:
         PAPER_DEADLINES_MS.setdefault(args.arch, args.deadline)
     devices = args.devices.split(",")

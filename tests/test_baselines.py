@@ -194,10 +194,12 @@ def test_shutdown_answers_everything(kind):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_harness_drives_each_kind(kind):
-    models = {"toy": ServedModel("toy", build_model("toy", "tiny", seed=0), 0.5)}
+    # A 2 s deadline: the tiny model takes milliseconds, so only a broken harness or engine
+    # misses it, not a 2-core CI machine that is busy for a moment (worker processes starting).
+    models = {"toy": ServedModel("toy", build_model("toy", "tiny", seed=0), 2.0)}
     host = EngineHost(engine_factory(kind, models, "cpu", max_batch=2, **NEEDS.get(kind, {})), label=kind)
     try:
-        res = simulate(host, [RobotGroup("toy", 4, 10.0)], SimConfig(epochs=2, duration_s=0.6, drain_s=0.5))
+        res = simulate(host, [RobotGroup("toy", 4, 10.0)], SimConfig(epochs=2, duration_s=0.6, drain_s=1.0))
     finally:
         host.close()
     s = res.models["toy"]

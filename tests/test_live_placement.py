@@ -82,3 +82,16 @@ def test_apply_moves_a_model_without_dropping_requests(tmp_path):
         broken.write_text(yaml.safe_dump({**moved, "engine": {"max_batch": 3}}))
         res = ctl(path, "apply", str(broken))
         assert res.returncode == 1 and "engine.max_batch: expected a power of two" in res.stderr
+        # A valid file whose engine or executor device differs is refused whole: those settings
+        # are read at start-up, and status must not claim what the running processes do not do.
+        version = control_status(cfg.control.bind)["table"]["version"]
+        restart = tmp_path / "restart.yaml"
+        engine = {**moved.get("engine", {}), "max_batch": 2 * cfg.engine.max_batch}
+        executors = [{**ex, "device": "cuda:7"} if ex["name"] == "ex0" else ex for ex in moved["executors"]]
+        restart.write_text(yaml.safe_dump({**moved, "engine": engine, "executors": executors}))
+        res = ctl(path, "apply", str(restart))
+        assert res.returncode == 1, res.stdout
+        assert f"engine.max_batch: {cfg.engine.max_batch} -> {2 * cfg.engine.max_batch}" in res.stderr
+        assert "executors.ex0.device: 'cpu' -> 'cuda:7'" in res.stderr and "nothing was changed" in res.stderr
+        status = control_status(cfg.control.bind)
+        assert status["table"]["version"] == version and status["rollout"]["done"] == ["ex1", "ex0"]

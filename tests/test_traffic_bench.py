@@ -5,6 +5,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FAST = ["--size", "tiny", "--gpus", "2", "--devices", "cpu", "--engine", "monolithic", "--epochs", "1",
         "--duration", "1.5", "--limit-epochs", "1", "--limit-duration", "1", "--max-robots", "4"]
@@ -65,7 +67,35 @@ def test_limits_experiment_measures_each_rate_once(tmp_path):
                           "--rates", "1,2,4", "--hz", "2", *FAST, "--devices", "cpu,cpu", "--limits-cache", str(cache)],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
+    assert "measuring 4 robot limits on 2 device(s)" in res.stdout  # pi0 at 2 Hz is measured once
     keys = sorted(json.loads(cache.read_text()))
     assert keys == sorted(f"cpu|{a}:tiny|{hz}Hz|mb2|{d}ms|monolithic|at0.98"
                           for a, hz, d in [("pi0", 1, 156), ("pi0", 2, 156), ("pi0", 4, 156), ("xr0", 2, 117)])
     assert all(1 <= e["limit"] <= 4 for e in json.loads(cache.read_text()).values())
+
+
+def probe(tag, device):
+    return tag, device, os.getpid()
+
+
+def fail(tag, device):
+    raise ValueError(f"job {tag} failed on {device}")
+
+
+def test_device_pool_routes_by_slot_keeps_order_and_raises():
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import traffic
+
+    pool = traffic.DevicePool(["dev-a", "dev-b"])  # device names are passed through to the calls
+    try:
+        out = pool.run([(i, probe, (i,)) for i in range(5)])
+        assert [o[0] for o in out] == [0, 1, 2, 3, 4]
+        assert [o[1] for o in out] == ["dev-a", "dev-b", "dev-a", "dev-b", "dev-a"]
+        workers = {device: {pid for _, d, pid in out if d == device} for device in ("dev-a", "dev-b")}
+        assert all(len(p) == 1 for p in workers.values())  # one worker process per device, kept
+        assert workers["dev-a"] != workers["dev-b"] and os.getpid() not in workers["dev-a"] | workers["dev-b"]
+        with pytest.raises(ValueError, match="job 1 failed on dev-b"):
+            pool.run([(0, probe, (0,)), (1, fail, (1,))])
+        assert pool.run([(3, probe, (7,))])[0][:2] == (7, "dev-b")  # the pool survives a failed call
+    finally:
+        pool.close()

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
-from typing import Callable
+from dataclasses import asdict, dataclass, fields, is_dataclass
+from typing import Any, Callable
 
 from services.controlplane.state import ClusterState
 from shared.config import ClusterConfig, ModelConfig
@@ -28,6 +28,41 @@ class Step:
     started: float = 0.0
     drained_version: int = 0  # the table version without this executor's routes
     loading: bool = False
+
+
+# Settings `apply` changes live: the models (placement, populations, rates, limits, weights),
+# which executor hosts which, and how robots are assigned. Everything else is read once by a
+# process at start-up, so installing it as desired state would only make status disagree with
+# what runs.
+LIVE_CONTROL_FIELDS = frozenset({"strategy", "solve_time_limit_s"})
+LIVE_EXECUTOR_FIELDS = frozenset({"name", "models", "memory_gb"})  # memory_gb: checked at apply
+
+
+def _differences(prefix: str, a: Any, b: Any, out: list[str]) -> None:
+    if is_dataclass(a) and is_dataclass(b):
+        for f in fields(a):
+            _differences(f"{prefix}.{f.name}", getattr(a, f.name), getattr(b, f.name), out)
+    elif a != b:
+        out.append(f"{prefix}: {a!r} -> {b!r}")
+
+
+def restart_only_changes(old: ClusterConfig, new: ClusterConfig) -> list[str]:
+    """The settings that differ in ``new`` but take effect only when the processes restart."""
+    out: list[str] = []
+    _differences("engine", old.engine, new.engine, out)
+    _differences("router", old.router, new.router, out)
+    for f in fields(old.control):
+        if f.name not in LIVE_CONTROL_FIELDS:
+            _differences(f"control.{f.name}", getattr(old.control, f.name), getattr(new.control, f.name), out)
+    for ex in new.executors:
+        try:
+            before = old.executor(ex.name)
+        except KeyError:
+            continue  # a new executor joins when it starts and registers
+        for f in fields(ex):
+            if f.name not in LIVE_EXECUTOR_FIELDS:
+                _differences(f"executors.{ex.name}.{f.name}", getattr(before, f.name), getattr(ex, f.name), out)
+    return out
 
 
 def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> list[Step]:

@@ -10,7 +10,7 @@ from dataclasses import asdict
 import yaml
 import zmq
 
-from services.controlplane.rollout import Rollout, plan_steps
+from services.controlplane.rollout import Rollout, plan_steps, restart_only_changes
 from services.controlplane.state import ClusterState
 from shared import control
 from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_dict
@@ -88,6 +88,11 @@ class ControlPlane:
                 return self._reply(peer, "error", message=f"config error: {exc}")
             except yaml.YAMLError:
                 return self._reply(peer, "error", message="config error: not valid YAML")
+            fixed = restart_only_changes(st.cfg, new)
+            if fixed:
+                return self._reply(peer, "error", message="apply changes models, placement, populations and "
+                                   "control.strategy live; these settings take effect only on restart, so nothing "
+                                   "was changed: " + "; ".join(fixed))
             steps = plan_steps(st.cfg, new, st)
             st.replace_config(new)
             self.rollout = Rollout(steps)

@@ -25,6 +25,7 @@ import logging
 import os
 import re
 import statistics
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,9 +76,16 @@ class SMTable:
     def save(self, path: str | Path) -> None:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")  # executors sharing a profile dir may save at once
-        tmp.write_text(json.dumps(dataclasses.asdict(self), indent=1) + "\n")
-        tmp.replace(path)
+        # A temp file of its own: executors (processes or threads) sharing a profile dir may save at once.
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+        try:
+            os.fchmod(fd, 0o644)  # readable like any other cached file (mkstemp makes it private)
+            with os.fdopen(fd, "w") as fh:
+                fh.write(json.dumps(dataclasses.asdict(self), indent=1) + "\n")
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
 
     @classmethod
     def load(cls, path: str | Path) -> "SMTable":
