@@ -38,6 +38,7 @@ sys.path.insert(0, ROOT)
 from services.executor.simulation import (PAPER_DEADLINES_MS, CapacityResult, EngineHost, Point,  # noqa: E402
                                           SimConfig, _json_safe, compare_capacity, engine_factory,
                                           served_models)
+from shared.files import write_atomic  # noqa: E402
 
 SCHEMA = "robion.capacity/1"
 log = logging.getLogger("bench.capacity")
@@ -188,10 +189,7 @@ class Report:
     def write(self) -> None:
         if self.path is None:
             return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_suffix(self.path.suffix + ".tmp")
-        tmp.write_text(json.dumps(_json_safe(self.doc), indent=1) + "\n")
-        tmp.replace(self.path)
+        write_atomic(self.path, json.dumps(_json_safe(self.doc), indent=1) + "\n")
 
 
 def overlap_bound(model, batch: int, device: str) -> dict:

@@ -37,6 +37,7 @@ from capacity import _point_dict, meta  # noqa: E402
 from services.executor.simulation import (PAPER_DEADLINES_MS, EngineHost, SimConfig, _json_safe,  # noqa: E402
                                           compare_capacity, engine_factory, served_models)
 from shared.config import parse_devices  # noqa: E402
+from shared.files import write_atomic  # noqa: E402
 
 SCHEMA = "robion.interdisagg/1"
 log = logging.getLogger("bench.interdisagg")
@@ -133,10 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     def write() -> None:
         if args.out is None:
             return
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_suffix(args.out.suffix + ".tmp")
-        tmp.write_text(json.dumps(_json_safe(doc), indent=1) + "\n")
-        tmp.replace(args.out)
+        write_atomic(args.out, json.dumps(_json_safe(doc), indent=1) + "\n")
 
     t0 = time.monotonic()
     # One set of weights on the first device; the interdisagg engine copies it to its other devices.

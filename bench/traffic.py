@@ -89,32 +89,31 @@ def release_engine(keep: frozenset = frozenset()) -> None:
         del _MODELS[key]
 
 
+def _host(models: list[Variant], size: str, engine: dict, device: str, label: str):
+    """An engine (not yet prepared) serving ``models`` on ``device``, weights from this worker's cache."""
+    from services.executor.engine import ServedModel
+    from services.executor.simulation import EngineHost, engine_factory
+
+    served = {v.name: ServedModel(v.name, _model(v.arch, size, v.seed, device), v.slo_ms / 1e3) for v in models}
+    return EngineHost(engine_factory(engine["kind"], served, device, **{k: x for k, x in engine.items() if k != "kind"}),
+                      label=label)
+
+
 def _engine_host(job: GpuJob, device: str):
     """The prepared engine for the models this GPU hosts, reused while the next job on this
     device hosts the same ones: with a device per modelled GPU, graph capture and profiling
     happen once per placement, not once per run. One engine at a time per worker."""
-    from services.executor.engine import ServedModel
-    from services.executor.simulation import EngineHost, engine_factory
-
     key = (device, tuple(v.name for v in job.models), tuple(sorted(job.engine.items())))
     if key not in _HOST:
         release_engine(frozenset((v.arch, job.size, v.seed, device) for v in job.models))
-        served = {v.name: ServedModel(v.name, _model(v.arch, job.size, v.seed, device), v.slo_ms / 1e3)
-                  for v in job.models}
-        _HOST[key] = EngineHost(engine_factory(job.engine["kind"], served, device,
-                                               **{k: x for k, x in job.engine.items() if k != "kind"}),
-                                label=f"gpu{job.gpu}")
+        _HOST[key] = _host(job.models, job.size, job.engine, device, f"gpu{job.gpu}")
     return _HOST[key]
 
 
 def run_gpu(job: GpuJob, device: str) -> dict:
     """Simulate one GPU's assigned robots through an engine serving the models it hosts."""
-    import torch
-
     from services.executor.simulation import RobotGroup, SimConfig, simulate
 
-    if device.startswith("cuda"):
-        torch.cuda.set_device(torch.device(device))
     active = [v for v in job.models if job.robots.get(v.name, 0) > 0]
     if not active:
         return {"label": job.label, "gpu": job.gpu, "sent": 0, "met": 0, "models": {}}
@@ -126,6 +125,14 @@ def run_gpu(job: GpuJob, device: str) -> dict:
                            "p99_ms": s.p99_ms} for m, s in result.models.items()}}
 
 
+def bind_device(device: str) -> None:
+    """Make ``device`` current for this process (its workers run everything on it)."""
+    if device.startswith("cuda"):
+        import torch
+
+        torch.cuda.set_device(torch.device(device))
+
+
 class DevicePool:
     """One worker process per device, kept for the whole experiment, so each device builds its
     models once (a shared pool would move jobs between devices and keep several copies of the
@@ -134,8 +141,10 @@ class DevicePool:
     def __init__(self, devices: list[str]):
         self.devices = devices
         ctx = mp.get_context("spawn")
-        self._pools = ([cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) for _ in devices]
-                       if len(devices) > 1 else [])
+        self._pools = ([cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=bind_device, initargs=(d,))
+                        for d in devices] if len(devices) > 1 else [])
+        if not self._pools:
+            bind_device(devices[0])
 
     def run(self, calls: list[tuple[int, object, tuple]]) -> list:
         """``(slot, fn, args)`` calls, each on device ``slot % len(devices)`` (as ``fn(*args, device)``);
@@ -170,16 +179,9 @@ def measure_limit(v: Variant, size: str, engine: dict, sim: dict, target: float,
                   device: str) -> int:
     """C_i of a variant at its rate on ``device``: the screened capacity search of one engine
     serving only this variant (one-epoch bracketing, full runs on the candidate)."""
-    from services.executor.engine import ServedModel
-    from services.executor.simulation import EngineHost, SimConfig, engine_factory, find_capacity
+    from services.executor.simulation import SimConfig, find_capacity
 
-    if device.startswith("cuda"):
-        import torch
-
-        torch.cuda.set_device(torch.device(device))
-    served = {v.name: ServedModel(v.name, _model(v.arch, size, v.seed, device), v.slo_ms / 1e3)}
-    host = EngineHost(engine_factory(engine["kind"], served, device, **{k: x for k, x in engine.items() if k != "kind"}),
-                      label=f"limit {v.arch} {v.hz:g} Hz")
+    host = _host([v], size, engine, device, f"limit {v.arch} {v.hz:g} Hz")
     try:
         res = find_capacity(host, v.name, hz=v.hz, sim=SimConfig(**sim), target=target, start=min(start, max_robots),
                             max_robots=max_robots, screen_epochs=1, progress=False)
@@ -188,22 +190,17 @@ def measure_limit(v: Variant, size: str, engine: dict, sim: dict, target: float,
     return max(1, res.capacity)
 
 
-def limit_key(gpu: str, v: Variant, size: str, engine: dict, target: float) -> str:
-    """Variants of one architecture share a limit at the same rate and deadline."""
-    return "|".join([gpu, f"{v.arch}:{size}", f"{v.hz:g}Hz", f"mb{engine['max_batch']}", f"{v.slo_ms:g}ms",
-                     engine["kind"], f"at{target:g}"])
-
-
 def measure_limits(variants: list[Variant], args, engine: dict, limit_sim: dict, pool: DevicePool, gpu: str) -> float:
     """Fill ``limit`` of every variant from the cache file, measuring the missing (architecture,
     rate) pairs on all devices at once; returns the seconds spent measuring."""
-    from services.executor.limits import LimitCache
+    from services.executor.limits import LimitCache, limit_key
 
     cache = LimitCache(args.limits_cache) if args.limits_cache else None
     known = {k: e["limit"] for k, e in (cache.read() if cache else {}).items()}
+    keys = [limit_key(gpu, v.arch, args.size, v.hz, engine["max_batch"], v.slo_ms, engine["kind"], args.target)
+            for v in variants]
     missing: dict[str, Variant] = {}
-    for v in variants:
-        key = limit_key(gpu, v, args.size, engine, args.target)
+    for key, v in zip(keys, variants):
         if key not in known:
             missing.setdefault(key, v)
     t0 = time.monotonic()
@@ -216,8 +213,8 @@ def measure_limits(variants: list[Variant], args, engine: dict, limit_sim: dict,
             known[key] = limit
             if cache:
                 cache.write(key, {"limit": limit, "sim": limit_sim, "date": datetime.date.today().isoformat()})
-    for v in variants:
-        v.limit = known[limit_key(gpu, v, args.size, engine, args.target)]
+    for key, v in zip(keys, variants):
+        v.limit = known[key]
     return time.monotonic() - t0
 
 

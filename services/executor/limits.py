@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import time
 from pathlib import Path
 
@@ -21,7 +20,8 @@ import torch
 
 from services.executor.engine import ServedModel, make_engine
 from services.executor.simulation import SimConfig, find_capacity
-from shared.config import ClusterConfig, EngineConfig
+from shared.config import ClusterConfig
+from shared.files import write_atomic
 
 log = logging.getLogger("robion.executor")
 
@@ -30,9 +30,10 @@ def device_name(device: torch.device) -> str:
     return torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
 
 
-def limit_key(device: torch.device, served: ServedModel, size: str, hz: float, engine: EngineConfig, target: float) -> str:
-    return "|".join([device_name(device), f"{served.model.arch}:{size}", f"{hz:g}Hz", f"mb{engine.max_batch}",
-                     f"{served.slo_s * 1e3:g}ms", engine.kind, f"at{target:g}"])
+def limit_key(gpu: str, arch: str, size: str, hz: float, max_batch: int, slo_ms: float, kind: str, target: float) -> str:
+    """What a limit depends on; fine-tuned variants of one architecture share it (also the
+    key of the traffic bench's limit files, so either can read the other's)."""
+    return "|".join([gpu, f"{arch}:{size}", f"{hz:g}Hz", f"mb{max_batch}", f"{slo_ms:g}ms", kind, f"at{target:g}"])
 
 
 class LimitCache:
@@ -48,12 +49,9 @@ class LimitCache:
             return {}
 
     def write(self, key: str, entry: dict) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         data = self.read()
         data[key] = entry
-        tmp = self.path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
-        tmp.replace(self.path)  # atomic: a concurrent reader sees the old or the new file, never half
+        write_atomic(self.path, json.dumps(data, indent=2, sort_keys=True))
 
 
 def owned_models(cfg: ClusterConfig, executor: str, hosted: list[str]) -> list[str]:
@@ -76,7 +74,8 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
         if mc.limit is not None:
             continue
         served = models[name]
-        key = limit_key(device, served, mc.size, mc.hz, cfg.engine, lc.target)
+        key = limit_key(device_name(device), served.model.arch, mc.size, mc.hz, cfg.engine.max_batch, served.slo_s * 1e3,
+                        cfg.engine.kind, lc.target)
         if key in known:
             out[name] = int(known[key]["limit"])
             continue

@@ -22,10 +22,8 @@ import hashlib
 import importlib
 import json
 import logging
-import os
 import re
 import statistics
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +31,7 @@ from pathlib import Path
 import torch
 
 from services.executor.sm import Level, level_name, parse_level
+from shared.files import write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -74,18 +73,8 @@ class SMTable:
         return all(c in have for c in combos)
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # A temp file of its own: executors (processes or threads) sharing a profile dir may save at once.
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-        try:
-            os.fchmod(fd, 0o644)  # readable like any other cached file (mkstemp makes it private)
-            with os.fdopen(fd, "w") as fh:
-                fh.write(json.dumps(dataclasses.asdict(self), indent=1) + "\n")
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        # Executors sharing a profile dir may save at once.
+        write_atomic(path, json.dumps(dataclasses.asdict(self), indent=1) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> "SMTable":
