@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     rows, runs = [], []
     for n_models, n_gpus in SIZES:
         for placement in ("full", "partial"):
-            times, n_opt, gaps = [], 0, []
+            times, n_opt = [], 0
             for k in range(args.instances):
                 seed = 1000 * n_models + 10 * n_gpus + k + (500 if placement == "partial" else 0)
                 prob = make_instance(n_models, n_gpus, placement, seed)

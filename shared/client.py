@@ -124,24 +124,23 @@ class RobotClient:
     def metadata(self, refresh: bool = False) -> dict[str, ModelInfo]:
         """The served models: their camera names, image shape, state size, output shape and deadline."""
         if self._metadata is None or refresh:
-            rid = f"{self.robot_id}-hello-{next(self._ids)}"
-            self._pending[rid] = ("", time.monotonic(), 0)
-            self.socket.send_multipart(encode(Hello(id=rid)))
-            done = self._wait_for(rid, None)
-            if done.error is not None:
-                raise done.error
+            self._round_trip(Hello, "hello", None)
         assert self._metadata is not None
         return self._metadata
 
     def ping(self, timeout_s: float | None = None) -> float:
         """Round-trip time to the router in seconds."""
-        rid = f"{self.robot_id}-ping-{next(self._ids)}"
+        return self._round_trip(Ping, "ping", timeout_s).latency_s
+
+    def _round_trip(self, message: type, tag: str, timeout_s: float | None) -> Completion:
+        """Send a message that carries only an id and wait for its answer; its error is raised."""
+        rid = f"{self.robot_id}-{tag}-{next(self._ids)}"
         self._pending[rid] = ("", time.monotonic(), 0)
-        self.socket.send_multipart(encode(Ping(id=rid)))
+        self.socket.send_multipart(encode(message(id=rid)))
         done = self._wait_for(rid, timeout_s)
         if done.error is not None:
             raise done.error
-        return done.latency_s
+        return done
 
     def close(self) -> None:
         self.socket.close(linger=0)

@@ -3,11 +3,9 @@
 import os
 import subprocess
 import sys
-import time
 
 import msgpack
 import numpy as np
-import pytest
 import zmq
 
 from shared.cluster import LocalCluster

@@ -148,7 +148,10 @@ class ArrivalDuringStage(torch.nn.Module):
         return self.inner.noise(*a, **k)
 
 
-def test_requests_are_admitted_only_at_lockstep_starts():
+def serve_with_late_arrival(build):
+    """Serve request "first"; while its VLM stage runs, submit "late". ``build(models)`` makes
+    the engine. Returns the engine's ``_index`` (locksteps issued) when "late" arrived, the
+    replies by request id, the engine, the model and "late"."""
     model = build_model("toy", seed=1)
     rng = np.random.default_rng(3)
     late = make_req(model, "late", rng)
@@ -156,20 +159,23 @@ def test_requests_are_admitted_only_at_lockstep_starts():
     box = {}
 
     def on_call(n):  # call 1+ are allocation passes; serving starts after prepare
-        if box.get("serving") and "sent" not in box:
-            box["sent"] = box["eng"]._index - 1  # the lockstep whose VLM is running now
+        if box.get("serving") and "index" not in box:
+            box["index"] = box["eng"]._index
             box["eng"].submit(late)
 
-    wrapped = ArrivalDuringStage(model, on_call)
-    eng, sink = engine_for({"toy": (wrapped, 1.0)}, max_batch=2)
+    eng, sink = build({"toy": (ArrivalDuringStage(model, on_call), 1.0)})
     box["eng"] = eng
     box["serving"] = True
     first = make_req(model, "first", rng)
     first.model = "toy"
     eng.submit(first)
     drive(eng)
-    res = {r.request.id: r for r in sink.results}
-    assert box["sent"] == 0 and res["first"].lockstep == 0
+    return box["index"], {r.request.id: r for r in sink.results}, eng, model, late
+
+
+def test_requests_are_admitted_only_at_lockstep_starts():
+    index, res, eng, model, late = serve_with_late_arrival(lambda models: engine_for(models, max_batch=2))
+    assert index == 1 and res["first"].lockstep == 0  # one lockstep issued: lockstep 0, whose VLM is running
     assert res["late"].lockstep == 1  # not squeezed into the running batch, admitted at the next start
     np.testing.assert_allclose(res["late"].actions, eager(model, late), rtol=1e-4, atol=1e-5)
 
@@ -408,27 +414,8 @@ def test_launch_ahead_keeps_lockstep_order_and_results():
 def test_launch_ahead_admits_at_the_decision_point():
     """With launch-ahead, lockstep k+1's batch is taken before k ends: a request arriving after
     that decision (here: during lockstep 0's VLM stage, after lockstep 1 was issued) waits for k+2."""
-    model = build_model("toy", seed=1)
-    rng = np.random.default_rng(3)
-    late = make_req(model, "late", rng)
-    late.model = "toy"
-    box = {}
-
-    def on_call(n):
-        if box.get("serving") and "sent" not in box:
-            box["sent"] = box["eng"]._index  # locksteps issued so far
-            box["eng"].submit(late)
-
-    wrapped = ArrivalDuringStage(model, on_call)
-    eng, sink = ahead_engine({"toy": (wrapped, 1.0)}, max_batch=2)
-    box["eng"] = eng
-    box["serving"] = True
-    first = make_req(model, "first", rng)
-    first.model = "toy"
-    eng.submit(first)
-    drive(eng)
-    res = {r.request.id: r for r in sink.results}
-    assert box["sent"] == 2 and res["first"].lockstep == 0  # lockstep 1 (first's action) already issued
+    index, res, eng, model, late = serve_with_late_arrival(lambda models: ahead_engine(models, max_batch=2))
+    assert index == 2 and res["first"].lockstep == 0  # locksteps issued so far: 1 (first's action) already
     assert res["late"].lockstep == 2
     recs = eng.telemetry.records()
     assert [(r.vlm_batch, r.action_batch) for r in recs] == [(1, 0), (0, 1), (1, 0), (0, 1)]

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from shared.models.fused import (Workspace, attention_fits, gated_act, linear_residual_splitk,  # noqa: F401
-                                 norm_gated_mlp_in, norm_linear, norm_qkv, small_attention, split_qkv)
+                                 small_attention, split_qkv)
 
 # --------------------------------------------------------------------------- init
 

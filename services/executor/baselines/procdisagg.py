@@ -198,7 +198,7 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, free_inputs, resul
     stages, ring, inputs, free = [], [], [], []
     for p in shared.plans:
         if cuda and shared.graphs:
-            from services.executor.graphs import GraphPools, GraphStages
+            from services.executor.graphs import GraphStages
 
             st = GraphStages(p.model, device, sizes, shared.seed, _vlm_worker_pools(), None, stream, stream)
         else:
@@ -223,7 +223,6 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, free_inputs, resul
         mi, slot, seqs, admitted = msg
         b = len(seqs)
         p, st = shared.plans[mi], stages[mi]
-        t_start = time.monotonic()
         try:
             v = inputs[mi][slot]
             np_in = {k: t.numpy() for k, t in v.items()}

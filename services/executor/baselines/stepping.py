@@ -184,7 +184,7 @@ class Pi0Adapter(_FoldedTime):
         self._fold(self.model.expert, self.model.cfg.expert_width)
 
     def init_rows(self, handoff: Handoff, noise: torch.Tensor) -> State:
-        m, c, e = self.model, self.model.cfg, self.model.expert
+        c, e = self.model.cfg, self.model.expert
         prefix_kv, mask = handoff["kv"], handoff["prefix_mask"]
         b, lp = mask.shape
         dev, hz = prefix_kv.device, c.horizon
@@ -203,7 +203,7 @@ class Pi0Adapter(_FoldedTime):
         # Every step runs [state ; actions] with the first step's mask: the state token's K/V
         # depend only on the prefix and the state, so recomputing them gives the cached values,
         # and the action rows attend to exactly what the model's later steps attend to.
-        m, c, e = self.model, self.model.cfg, self.model.expert
+        c, e = self.model.cfg, self.model.expert
         kv, x = S["kv"], S["x"]
         lp = kv.shape[-2] - 1 - c.horizon
         h = torch.cat([S["state_tok"], self._time_mlp(e, S, n, c.expert_width)], dim=1)
