@@ -130,6 +130,9 @@ class ControlConfig:
     metrics_port: int = field(default=9101, metadata=_check(_non_negative, "expected a port number (0 disables)"))
     strategy: str = "ip"  # robot-to-GPU assignment: ip (integer program), smg, eps, none (round-robin per request)
     solve_time_limit_s: float = field(default=5.0, metadata=_check(_positive, "expected a positive number"))
+    # Share of each robot limit C_i the traffic controller fills (floor(C_i * headroom)); below 1
+    # keeps slack under the measured limit, where SLO attainment falls off steeply.
+    headroom: float = field(default=1.0, metadata=_check(lambda v: 0 < v <= 1, "expected a share in (0, 1]"))
     limits: LimitsConfig = field(default_factory=LimitsConfig)
 
 

@@ -43,6 +43,8 @@ def test_defaults():
     (lambda d: d.update(engine={"max_batch": 3}), "engine.max_batch: expected a power of two"),
     (lambda d: d.update(engine={"policy": "fifo"}), "engine.policy: expected one of esf, rr, lqf"),
     (lambda d: d.update(engine={"shed_expired": "yes"}), "engine.shed_expired: expected true or false"),
+    (lambda d: d.update(control={"headroom": 0}), "control.headroom: expected a share in (0, 1]"),
+    (lambda d: d.update(control={"headroom": 1.2}), "control.headroom: expected a share in (0, 1]"),
     (lambda d: d.update(router=[]), "router: expected a mapping"),
     (lambda d: d.pop("executors"), "executors: missing"),
     (lambda d: d.update(models="a"), "models: expected a list"),

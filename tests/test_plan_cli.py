@@ -51,6 +51,29 @@ def test_paper_example_table(tmp_path: Path) -> None:
     assert "objective: 4" in out.stdout and "proven optimal" in out.stdout
 
 
+def test_headroom_flag_and_cluster_config_default(tmp_path: Path) -> None:
+    out = run_plan(tmp_path, PAPER, "--headroom", "0.75", "--json")
+    assert out.returncode == 1  # limits of 3 hold 6 of the 8 robots
+    assert json.loads(out.stdout) == {"assignment": {}, "objective": None, "feasible": False}
+    assert "short by" in out.stderr
+    assert run_plan(tmp_path, PAPER, "--headroom", "0").returncode == 2
+    cluster = """\
+models:
+  - {name: A, arch: toy, robots: 6, limit: 8}
+  - {name: B, arch: toy, robots: 2, limit: 8}
+executors:
+  - {name: ex0, models: [A, B]}
+  - {name: ex1, models: [A, B]}
+control: {headroom: 0.5}
+"""
+    table = run_plan(tmp_path, cluster)
+    assert table.returncode == 0, table.stderr
+    rows = {line.split()[0]: line.split()[1] for line in table.stdout.splitlines() if line[:1] in "AB"}
+    assert rows == {"A": "4", "B": "4"}  # floor(8 x 0.5): the paper example again
+    assert "100%" in table.stdout
+    assert run_plan(tmp_path, cluster, "--headroom", "0.25").returncode == 1  # the flag wins
+
+
 def test_strategies_json(tmp_path: Path) -> None:
     smg = run_plan(tmp_path, PAPER, "--strategy", "smg", "--json")
     assert smg.returncode == 1  # GPU 0 serves 6 robots against a limit of 4

@@ -19,7 +19,7 @@ def test_placement_populations_and_strategy_are_live():
     new = cfg(models=[{"name": "a", "arch": "pi0", "robots": 9, "hz": 4}, {"name": "b", "arch": "xr0", "robots": 2}],
               executors=[{"name": "ex0", "models": ["a", "b"]}, {"name": "ex1", "models": ["b"]},
                          {"name": "ex2", "models": ["a"], "device": "cuda:1"}],
-              control={"strategy": "eps", "solve_time_limit_s": 1.0})
+              control={"strategy": "eps", "solve_time_limit_s": 1.0, "headroom": 0.9})
     assert restart_only_changes(old, new) == []
 
 

@@ -16,6 +16,7 @@ from services.controlplane.solver import (
     make_problem,
     objective_value,
     solve,
+    with_headroom,
 )
 
 
@@ -217,3 +218,23 @@ def test_medium_instance_is_fast_and_optimal() -> None:
     res = solve(p, time_limit_s=5)
     assert res.feasible and res.optimal and res.solve_time_s < 1.0
     assert check_assignment(p, res.assignment) == []
+
+
+def test_headroom_cuts_limits_exactly_and_can_make_a_plan_infeasible() -> None:
+    p = make_problem(2, [("A", 100, 10, [0, 1]), ("B", 1, 0, [1]), ("C", 7, 3, [0])])
+    cut = with_headroom(p, 0.29)
+    # 0.29 x 100 is 29 on the decimal value (the binary float product is 28.999...); never below 1.
+    assert [m.limit for m in cut.models] == [29, 1, 2]
+    assert [(m.robots, m.gpus) for m in cut.models] == [(m.robots, m.gpus) for m in p.models]
+    assert with_headroom(p, 1.0) is p
+    # The paper example fills both GPUs exactly: with limits of 3 its 8 robots no longer fit.
+    assert solve(paper_problem(), "ip").feasible
+    res = solve(with_headroom(paper_problem(), 0.75), "ip")
+    assert not res.feasible and res.assignment == {} and "short by" in res.diagnosis
+
+
+@pytest.mark.parametrize("headroom", [0.0, -0.5, 1.01])
+def test_headroom_outside_unit_interval_is_refused(headroom: float) -> None:
+    with pytest.raises(PlanInputError) as e:
+        with_headroom(paper_problem(), headroom)
+    assert e.value.path == "headroom"

@@ -3,7 +3,7 @@
 Reads a minimal planning file (see docs/planning.md), solves it with the traffic
 controller and prints the assignment without starting anything:
 
-    python -m services.controlplane.planning FILE.yaml [--strategy ip|smg|eps] [--json]
+    python -m services.controlplane.planning FILE.yaml [--strategy ip|smg|eps] [--headroom H] [--json]
 
 Exit codes: 0 assignment within the GPU limits, 1 infeasible (or, for smg/eps, an
 assignment that overloads a GPU; for ip also a time-out without any assignment),
@@ -30,6 +30,7 @@ from services.controlplane.solver import (
     PlanProblem,
     PlanResult,
     solve,
+    with_headroom,
 )
 
 _MODEL_KEYS = ("limit", "robots", "gpus")
@@ -107,8 +108,11 @@ def problem_from_cluster(cfg: ClusterConfig, executors: Sequence[str] | None = N
     return PlanProblem(len(names), tuple(models))
 
 
-def load_planning_file(path: str | Path) -> PlanProblem:
-    """Parse a YAML planning file or a full cluster config; PlanInputError carries a readable reason."""
+def load_planning_file(path: str | Path, headroom: float | None = None) -> PlanProblem:
+    """Parse a YAML planning file or a full cluster config; PlanInputError carries a readable reason.
+
+    Limits are cut to ``headroom`` of C_i (``with_headroom``): the given share, else a cluster
+    config's ``control.headroom`` (what the control plane would plan with), else none."""
     try:
         text = Path(path).read_text()
     except OSError as e:
@@ -119,10 +123,11 @@ def load_planning_file(path: str | Path) -> PlanProblem:
         raise PlanInputError("", f"not valid YAML: {e}") from None
     if isinstance(data, dict) and "executors" in data:
         try:
-            return problem_from_cluster(config_from_dict(data))
+            cfg = config_from_dict(data)
+            return with_headroom(problem_from_cluster(cfg), cfg.control.headroom if headroom is None else headroom)
         except ConfigError as e:
             raise PlanInputError("", str(e)) from None
-    return problem_from_mapping(data)
+    return with_headroom(problem_from_mapping(data), 1.0 if headroom is None else headroom)
 
 
 def format_table(problem: PlanProblem, result: PlanResult) -> str:
@@ -164,10 +169,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--strategy", choices=STRATEGIES, default="ip", help="ip (integer program, default), smg, eps")
     ap.add_argument("--json", action="store_true", help='print {"assignment", "objective", "feasible"} as JSON')
     ap.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT_S, help="solver time limit in seconds (ip)")
+    ap.add_argument("--headroom", type=float, help="plan with floor(limit x H) robots per GPU, 0 < H <= 1 "
+                                                   "(default: a cluster config's control.headroom, else 1)")
     args = ap.parse_args(argv)
 
     try:
-        problem = load_planning_file(args.file)
+        problem = load_planning_file(args.file, args.headroom)
         result = solve(problem, args.strategy, time_limit_s=args.time_limit)
     except PlanInputError as e:
         print(f"robion plan: {args.file}: {e}", file=sys.stderr)

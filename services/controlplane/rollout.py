@@ -34,7 +34,7 @@ class Step:
 # which executor hosts which, and how robots are assigned. Everything else is read once by a
 # process at start-up, so installing it as desired state would only make status disagree with
 # what runs.
-LIVE_CONTROL_FIELDS = frozenset({"strategy", "solve_time_limit_s"})
+LIVE_CONTROL_FIELDS = frozenset({"strategy", "solve_time_limit_s", "headroom"})
 LIVE_EXECUTOR_FIELDS = frozenset({"name", "models", "memory_gb"})  # memory_gb: checked at apply
 
 

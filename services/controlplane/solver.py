@@ -89,6 +89,22 @@ class PlanProblem:
         return [m for m in self.models if gpu in m.gpus]
 
 
+def with_headroom(problem: PlanProblem, headroom: float) -> PlanProblem:
+    """The same problem with every limit C_i cut to floor(C_i * headroom), at least 1.
+
+    A measured C_i is the robot count at which one GPU just holds the target SLO
+    attainment; planning a fleet right up to it leaves no slack for arrival bursts or
+    co-located models. ``headroom`` < 1 keeps that slack. The product is taken on the
+    decimal value (0.29 x 100 is 29, not 28.999...)."""
+    if not 0 < headroom <= 1:
+        raise PlanInputError("headroom", f"expected a share in (0, 1], got {headroom!r}")
+    if headroom == 1:
+        return problem
+    share = Fraction(repr(float(headroom)))
+    return PlanProblem(problem.num_gpus, tuple(
+        ModelDemand(m.name, max(1, math.floor(m.limit * share)), m.robots, m.gpus) for m in problem.models))
+
+
 @dataclass
 class PlanResult:
     """Outcome of one strategy.

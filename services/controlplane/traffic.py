@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from services.controlplane.solver import ModelDemand, PlanInputError, PlanProblem, PlanResult, solve
+from services.controlplane.solver import ModelDemand, PlanInputError, PlanProblem, PlanResult, solve, with_headroom
 from shared.config import ClusterConfig
 
 log = logging.getLogger("robion.control")
@@ -23,8 +23,9 @@ class Quotas:
 def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[str, int] | None = None) -> Quotas:
     """Solve the robot-to-GPU assignment over the executors alive now (``placement``: executor -> models).
 
-    When the integer program is infeasible the even split is used instead, so every robot
-    still has a GPU, and the diagnosis is logged for the operator.
+    Each limit is first cut to ``control.headroom`` of C_i (``with_headroom``). When the
+    integer program is infeasible the even split is used instead, so every robot still has
+    a GPU, and the diagnosis is logged for the operator.
     """
     demands = {m.name: m for m in cfg.models if m.robots > 0}
     if cfg.control.strategy == "none" or not demands:
@@ -41,8 +42,9 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[s
         for model in placement[name]:
             hosts.setdefault(model, []).append(j)
     try:
-        problem = PlanProblem(len(executors), tuple(
-            ModelDemand(m.name, limit[m.name], m.robots, tuple(hosts.get(m.name, ()))) for m in demands.values()))
+        problem = with_headroom(PlanProblem(len(executors), tuple(
+            ModelDemand(m.name, limit[m.name], m.robots, tuple(hosts.get(m.name, ()))) for m in demands.values())),
+            cfg.control.headroom)
     except PlanInputError as exc:
         log.error("cannot plan the traffic: %s", exc)
         return Quotas({}, {})
