@@ -180,16 +180,14 @@ def test_requests_are_admitted_only_at_lockstep_starts():
     np.testing.assert_allclose(res["late"].actions, eager(model, late), rtol=1e-4, atol=1e-5)
 
 
-def test_multi_model_earliest_slo_first_and_shared_streams():
-    a, b = build_model("toy", seed=1), build_model("toy", seed=2)
-    eng, sink = engine_for({"a": (a, 1.0), "b": (b, 1.0)}, max_batch=1)
+def serve_two_models_earliest_deadline_first(eng, sink, a, b) -> None:
+    """Five requests of models a and b with mixed deadlines at max_batch 1: they are served in
+    deadline order across the two queues, and every reply equals its model run eagerly."""
     rng = np.random.default_rng(4)
     plan = [("a", "a1", 10.0), ("b", "b1", 5.0), ("a", "a2", 11.0), ("b", "b2", 20.0), ("a", "a3", 12.0)]
-    reqs = {}
     for model_name, rid, deadline in plan:
         r = make_req(a, rid, rng, deadline_s=deadline)
         r.model = model_name
-        reqs[rid] = r
         eng.submit(r)
     drive(eng)
     order = [r.request.id for r in sorted(sink.results, key=lambda r: r.lockstep)]
@@ -197,6 +195,12 @@ def test_multi_model_earliest_slo_first_and_shared_streams():
     for res in sink.results:
         m = a if res.request.model == "a" else b
         np.testing.assert_allclose(res.actions, eager(m, res.request), rtol=1e-4, atol=1e-5)
+
+
+def test_multi_model_earliest_slo_first_and_shared_streams():
+    a, b = build_model("toy", seed=1), build_model("toy", seed=2)
+    eng, sink = engine_for({"a": (a, 1.0), "b": (b, 1.0)}, max_batch=1)
+    serve_two_models_earliest_deadline_first(eng, sink, a, b)
     recs = eng.telemetry.records()
     # One VLM and one action stage per lockstep, possibly of different models.
     assert any(r.vlm_model != r.action_model and r.vlm_batch and r.action_batch for r in recs)
@@ -426,18 +430,7 @@ def test_launch_ahead_multi_model_esf_and_sm_levels():
     a, b = build_model("toy", seed=1), build_model("toy", seed=2)
     table = TableLevel({("toy:tiny", 1, "toy:tiny", 1): 64})
     eng, sink = ahead_engine({"a": (a, 1.0), "b": (b, 1.0)}, max_batch=1, sm_policy=table)
-    rng = np.random.default_rng(4)
-    plan = [("a", "a1", 10.0), ("b", "b1", 5.0), ("a", "a2", 11.0), ("b", "b2", 20.0), ("a", "a3", 12.0)]
-    for model_name, rid, deadline in plan:
-        r = make_req(a, rid, rng, deadline_s=deadline)
-        r.model = model_name
-        eng.submit(r)
-    drive(eng)
-    order = [r.request.id for r in sorted(sink.results, key=lambda r: r.lockstep)]
-    assert order == ["b1", "a1", "a2", "a3", "b2"]
-    for res in sink.results:
-        m = a if res.request.model == "a" else b
-        np.testing.assert_allclose(res.actions, eager(m, res.request), rtol=1e-4, atol=1e-5)
+    serve_two_models_earliest_deadline_first(eng, sink, a, b)
     assert [r.sm_level for r in eng.telemetry.records()] == [None, 64, 64, 64, 64, None]
 
 

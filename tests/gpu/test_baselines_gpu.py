@@ -19,8 +19,7 @@ from services.executor.engine import ServedModel, make_engine  # noqa: E402
 from services.executor.scheduler import Request, Result  # noqa: E402
 from shared.config import EngineConfig  # noqa: E402
 from shared.models import build_model  # noqa: E402
-
-DEV = torch.device("cuda:0")
+from tests.gpu.zoo import DEV, matmul_ms, requests, worst_error_vs_eager  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 TABLE = os.environ.get("ROBION_SM_TABLE", os.path.join(ROOT, "bench", "results", "sm_table_h100_zoo.json"))
 KINDS = {"monolithic": {}, "robion": {"sm_table": TABLE}, "disagg": {}, "static": {},
@@ -37,24 +36,6 @@ def watchdog():
 @pytest.fixture(scope="module")
 def pi0():
     return build_model("pi0", "full", seed=0, device=DEV)
-
-
-def requests(model, name: str, n: int, seed: int) -> list[Request]:
-    rng = np.random.default_rng(seed)
-    io = model.io
-    now = time.monotonic()
-    return [Request(id=f"{name}-{i}", robot=f"r{i}", model=name,
-                    images=rng.integers(0, 256, (len(io.cameras), *io.image_shape), dtype=np.uint8),
-                    state=rng.standard_normal(io.state_dim).astype(np.float32),
-                    tokens=rng.integers(1, 200, io.prompt_len).astype(np.int64), arrival=now, deadline=now + 600,
-                    noise=rng.standard_normal((io.horizon, io.action_dim)).astype(np.float32)) for i in range(n)]
-
-
-def eager(model, r: Request) -> np.ndarray:
-    with torch.inference_mode():
-        h = model.vlm_stage(torch.from_numpy(r.images)[None].to(DEV), torch.from_numpy(r.state)[None].to(DEV),
-                            torch.from_numpy(r.tokens)[None].to(DEV))
-        return model.action_stage(h, torch.from_numpy(r.noise)[None].to(DEV))[0].float().cpu().numpy()
 
 
 def serve(kind: str, model, reqs: list[Request], gap_every: int = 3, **cfg):
@@ -88,12 +69,7 @@ def serve(kind: str, model, reqs: list[Request], gap_every: int = 3, **cfg):
 def test_kind_serves_pi0_equal_to_eager(pi0, kind):
     reqs = requests(pi0, "pi0", 12, 0)
     eng, results, prep = serve(kind, pi0, reqs, **KINDS[kind])
-    assert len(results) == len(reqs) and len({r.request.id for r in results}) == len(reqs)
-    worst = 0.0
-    for res in results:
-        assert res.error is None, res.error
-        ref = eager(pi0, res.request)
-        worst = max(worst, float(np.linalg.norm(res.actions - ref) / np.linalg.norm(ref)))
+    worst = worst_error_vs_eager({"pi0": pi0}, results, len(reqs))
     summary = eng.telemetry.summary()
     print(f"\n{kind}: prepare {prep:.1f} s, worst relative error vs eager {worst:.2e}; telemetry {summary}")
     assert worst < 3e-2, worst
@@ -113,20 +89,8 @@ def test_disjoint_partition_restricts_both_streams(pi0):
     st = eng.stages["pi0"]
     assert st.capture_stream is part.vlm_stream and st.action_stream is part.action_stream  # graphs captured there
     assert all(r.error is None for r in results)
-    a = torch.randn(8192, 8192, device=DEV, dtype=torch.bfloat16)
-    times = {}
-    for name, stream in (("full", torch.cuda.Stream(DEV)), ("vlm", part.vlm_stream), ("action", part.action_stream)):
-        stream.wait_stream(torch.cuda.current_stream())
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        with torch.cuda.stream(stream):
-            a @ a
-            start.record(stream)
-            for _ in range(5):
-                a @ a
-            end.record(stream)
-        end.synchronize()
-        times[name] = start.elapsed_time(end) / 5
-        vlm = [r.vlm_ms for r in eng.telemetry.records() if r.vlm_batch == 2]
+    times = matmul_ms({"full": torch.cuda.Stream(DEV), "vlm": part.vlm_stream, "action": part.action_stream})
+    vlm = [r.vlm_ms for r in eng.telemetry.records() if r.vlm_batch == 2]
     print(f"\ndisjoint 32/{total - 32}: matmul full {times['full']:.2f} ms, VLM partition {times['vlm']:.2f} ms, "
           f"action partition {times['action']:.2f} ms; VLM b2 graph at 32 SMs {np.median(vlm) if vlm else 0:.2f} ms")
     assert times["vlm"] > 3.0 * times["full"]  # 32 of 132 SMs

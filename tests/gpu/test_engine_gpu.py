@@ -21,8 +21,7 @@ from services.executor.scheduler import Request, Result  # noqa: E402
 from services.executor.sm import GreenStreams, StaticLevel, TableLevel, Unrestricted  # noqa: E402
 from shared.config import EngineConfig  # noqa: E402
 from shared.models import build_model  # noqa: E402
-
-DEV = torch.device("cuda:0")
+from tests.gpu.zoo import DEV, eager, matmul_ms, requests, worst_error_vs_eager  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -109,32 +108,20 @@ def test_concurrent_stages_overlap():
     assert min(both, both96) < 0.95 * (vlm_solo + act_solo)
 
 
-def _requests(model, name: str, n: int, seed: int) -> list[Request]:
-    rng = np.random.default_rng(seed)
-    io = model.io
-    now = time.monotonic()
-    return [Request(id=f"{name}-{i}", robot="r", model=name,
-                    images=rng.integers(0, 256, (len(io.cameras), *io.image_shape), dtype=np.uint8),
-                    state=rng.standard_normal(io.state_dim).astype(np.float32),
-                    tokens=rng.integers(1, 200, io.prompt_len).astype(np.int64), arrival=now, deadline=now + 600,
-                    noise=rng.standard_normal((io.horizon, io.action_dim)).astype(np.float32)) for i in range(n)]
-
-
-def _eager(model, r: Request) -> np.ndarray:
-    with torch.inference_mode():
-        h = model.vlm_stage(torch.from_numpy(r.images)[None].to(DEV), torch.from_numpy(r.state)[None].to(DEV),
-                            torch.from_numpy(r.tokens)[None].to(DEV))
-        return model.action_stage(h, torch.from_numpy(r.noise)[None].to(DEV))[0].float().cpu().numpy()
-
-
-def _serve(eng: LockstepEngine, reqs: list[Request], results: list[Result]) -> None:
+def _serve(eng: LockstepEngine, reqs: list[Request], results: list[Result], queued: bool = False) -> None:
+    """Runs the engine until every request is answered. Arrivals are spread over locksteps, so
+    batch sizes vary, or with ``queued`` all submitted before it starts (saturating)."""
+    if queued:
+        for r in reqs:
+            eng.submit(r)
     stop = threading.Event()
     t = threading.Thread(target=eng.run, args=(stop,))
     t.start()
-    for i, r in enumerate(reqs):
-        eng.submit(r)
-        if i % 5 == 4:
-            time.sleep(0.003)  # arrivals spread over locksteps, so batch sizes vary
+    if not queued:
+        for i, r in enumerate(reqs):
+            eng.submit(r)
+            if i % 5 == 4:
+                time.sleep(0.003)
     deadline = time.monotonic() + 120
     while len(results) < len(reqs) and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -144,19 +131,13 @@ def _serve(eng: LockstepEngine, reqs: list[Request], results: list[Result]) -> N
 
 
 def _check(models: dict, results: list[Result], n: int) -> float:
-    assert len(results) == n and len({r.request.id for r in results}) == n
-    worst = 0.0
-    for res in results:
-        assert res.error is None, res.error
-        ref = _eager(models[res.request.model], res.request)
-        rel = float(np.linalg.norm(res.actions - ref) / np.linalg.norm(ref))
-        worst = max(worst, rel)
+    worst = worst_error_vs_eager(models, results, n)
     assert worst < 3e-2, worst  # bf16 through 10 Euler steps, batched vs single
     # The comparison must be able to fail: another request's observation (same noise) differs by more.
     a, b = results[0].request, next(r.request for r in results if r.request.model == results[0].request.model
                                     and r.request.id != results[0].request.id)
     swapped = Request(**{**a.__dict__, "images": b.images, "state": b.state, "tokens": b.tokens})
-    ref, other = _eager(models[a.model], a), _eager(models[a.model], swapped)
+    ref, other = eager(models[a.model], a), eager(models[a.model], swapped)
     sensitivity = float(np.linalg.norm(ref - other) / np.linalg.norm(ref))
     print(f"worst relative error {worst:.2e}; another observation moves the actions by {sensitivity:.2e}")
     assert sensitivity > 10 * max(worst, 1e-4)
@@ -175,7 +156,7 @@ def test_lockstep_results_equal_eager_single_and_co_located(policy):
     else:
         sm = Unrestricted()
     eng, results = _engine(models, EngineConfig(kind="robion", max_batch=2), sm)
-    reqs = _requests(h1, "h1", 12, 0) + _requests(h2, "h2", 12, 1) + _requests(toy, "toy", 12, 2)
+    reqs = requests(h1, "h1", 12, 0) + requests(h2, "h2", 12, 1) + requests(toy, "toy", 12, 2)
     order = np.random.default_rng(3).permutation(len(reqs))
     _serve(eng, [reqs[i] for i in order], results)
     worst = _check(models, results, len(reqs))
@@ -189,7 +170,7 @@ def test_lockstep_results_equal_eager_single_and_co_located(policy):
 def test_each_model_alone_equals_eager():
     h = build_model("heavytoy", "full", seed=5, device=DEV)
     eng, results = _engine({"h": h}, EngineConfig(kind="robion", max_batch=2), StaticLevel(88))
-    reqs = _requests(h, "h", 16, 4)
+    reqs = requests(h, "h", 16, 4)
     _serve(eng, reqs, results)
     _check({"h": h}, results, len(reqs))
     assert eng.telemetry.summary()["overlapping"] > 0
@@ -204,18 +185,8 @@ def test_launch_ahead_under_load_is_correct_and_hides_the_launch():
     eng, results = _engine(models, EngineConfig(kind="robion", max_batch=2),
                            TableLevel({("heavytoy:full", 2, "heavytoy:full", 2): 96}))
     assert eng._launch_ahead
-    reqs = _requests(h, "h", 60, 8)
-    for r in reqs:  # all queued before the engine starts: saturating
-        eng.submit(r)
-    stop = threading.Event()
-    t = threading.Thread(target=eng.run, args=(stop,))
-    t.start()
-    deadline = time.monotonic() + 120
-    while len(results) < len(reqs) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    stop.set()
-    t.join(60)
-    assert not t.is_alive()
+    reqs = requests(h, "h", 60, 8)
+    _serve(eng, reqs, results, queued=True)
     _check(models, results, len(reqs))
     s = eng.telemetry.summary()
     print(f"launch-ahead: {s['ahead']}/{s['back_to_back']} issued ahead; host gap {s['cpu_gap_us']}; "
@@ -229,19 +200,7 @@ def test_disjoint_split_gives_two_partitions():
 
     part = split_disjoint(DEV, 64)
     assert part.vlm_sms == 64 and part.action_sms == torch.cuda.get_device_properties(DEV).multi_processor_count - 64
-    a = torch.randn(8192, 8192, device=DEV, dtype=torch.bfloat16)
-    times = {}
-    for name, stream in (("full", torch.cuda.Stream(DEV)), ("vlm", part.vlm_stream), ("action", part.action_stream)):
-        stream.wait_stream(torch.cuda.current_stream())
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        with torch.cuda.stream(stream):
-            a @ a
-            start.record(stream)
-            for _ in range(5):
-                a @ a
-            end.record(stream)
-        end.synchronize()
-        times[name] = start.elapsed_time(end) / 5
+    times = matmul_ms({"full": torch.cuda.Stream(DEV), "vlm": part.vlm_stream, "action": part.action_stream})
     print(f"disjoint split: all SMs {times['full']:.2f} ms, {part.vlm_sms} SMs {times['vlm']:.2f} ms, "
           f"{part.action_sms} SMs {times['action']:.2f} ms")
     # About half the SMs each: both clearly slower than the whole device.

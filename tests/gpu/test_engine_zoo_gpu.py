@@ -22,11 +22,10 @@ if not torch.cuda.is_available():
 
 from services.executor.engine import ServedModel  # noqa: E402
 from services.executor.lockstep import LockstepEngine  # noqa: E402
-from services.executor.scheduler import Request, Result  # noqa: E402
+from services.executor.scheduler import Result  # noqa: E402
 from shared.config import EngineConfig  # noqa: E402
 from shared.models import build_model  # noqa: E402
-
-DEV = torch.device("cuda:0")
+from tests.gpu.zoo import DEV, requests, worst_error_vs_eager  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 TABLE = os.environ.get("ROBION_SM_TABLE", os.path.join(ROOT, "bench", "results", "sm_table_h100_zoo.json"))
 SPECS = {"pi0": ("pi0", 0), "pi0-ft": ("pi0", 7), "smolvla": ("smolvla", 0), "groot": ("groot_n15", 0), "xr0": ("xr0", 0)}
@@ -42,24 +41,6 @@ def watchdog():
 @pytest.fixture(scope="module")
 def zoo():
     return {name: build_model(arch, "full", seed=seed, device=DEV) for name, (arch, seed) in SPECS.items()}
-
-
-def requests(model, name: str, n: int, seed: int) -> list[Request]:
-    rng = np.random.default_rng(seed)
-    io = model.io
-    now = time.monotonic()
-    return [Request(id=f"{name}-{i}", robot=f"r{i}", model=name,
-                    images=rng.integers(0, 256, (len(io.cameras), *io.image_shape), dtype=np.uint8),
-                    state=rng.standard_normal(io.state_dim).astype(np.float32),
-                    tokens=rng.integers(1, 200, io.prompt_len).astype(np.int64), arrival=now, deadline=now + 600,
-                    noise=rng.standard_normal((io.horizon, io.action_dim)).astype(np.float32)) for i in range(n)]
-
-
-def eager(model, r: Request) -> np.ndarray:
-    with torch.inference_mode():
-        h = model.vlm_stage(torch.from_numpy(r.images)[None].to(DEV), torch.from_numpy(r.state)[None].to(DEV),
-                            torch.from_numpy(r.tokens)[None].to(DEV))
-        return model.action_stage(h, torch.from_numpy(r.noise)[None].to(DEV))[0].float().cpu().numpy()
 
 
 @pytest.mark.parametrize("names", [["pi0"], ["smolvla"], ["groot"], ["xr0"], ["pi0", "xr0"],
@@ -91,12 +72,7 @@ def test_zoo_served_by_lockstep_engine_equals_eager(zoo, names):
         time.sleep(0.01)
     stop.set()
     t.join(60)
-    assert len(results) == len(reqs) and len({r.request.id for r in results}) == len(reqs)
-    worst = 0.0
-    for res in results:
-        assert res.error is None, res.error
-        ref = eager(models[res.request.model], res.request)
-        worst = max(worst, float(np.linalg.norm(res.actions - ref) / np.linalg.norm(ref)))
+    worst = worst_error_vs_eager(models, results, len(reqs))
     summary = eng.telemetry.summary()
     gaps = [r.cpu_gap_us for r in eng.telemetry.records() if r.cpu_gap_us is not None]
     print(f"\n{'+'.join(names)}: {len(reqs)} replies, worst relative error vs eager {worst:.2e}; "

@@ -162,8 +162,8 @@ class ToyAdapter(StepAdapter):
 class _FoldedTime(StepAdapter):
     """pi0 / SmolVLA: ``action_in`` folded into the action half of ``time_mlp_in``; the time half is a per-step bias."""
 
-    def _fold(self, e, w: int) -> None:
-        c = self.model.cfg
+    def _prepare(self) -> None:
+        c, e, w = self.model.cfg, self.model.expert, self.model.cfg.expert_width
         t = euler_times(c.steps, e.time_mlp_in.weight.device)
         w_act, w_time = e.time_mlp_in.weight[:, :w], e.time_mlp_in.weight[:, w:]
         self.w_fold_t = (w_act @ e.action_in.weight).t().contiguous()
@@ -180,9 +180,6 @@ class _FoldedTime(StepAdapter):
 
 @_adapter("pi0")
 class Pi0Adapter(_FoldedTime):
-    def _prepare(self) -> None:
-        self._fold(self.model.expert, self.model.cfg.expert_width)
-
     def init_rows(self, handoff: Handoff, noise: torch.Tensor) -> State:
         c, e = self.model.cfg, self.model.expert
         prefix_kv, mask = handoff["kv"], handoff["prefix_mask"]
@@ -218,9 +215,6 @@ class Pi0Adapter(_FoldedTime):
 
 @_adapter("smolvla")
 class SmolVLAAdapter(_FoldedTime):
-    def _prepare(self) -> None:
-        self._fold(self.model.expert, self.model.cfg.expert_width)
-
     def init_rows(self, handoff: Handoff, noise: torch.Tensor) -> State:
         c, e = self.model.cfg, self.model.expert
         prefix_kv, mask = handoff["kv"], handoff["prefix_mask"]
