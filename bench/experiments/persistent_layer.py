@@ -48,7 +48,7 @@ import triton.language as tl
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from shared.models import build_model, fused, layers  # noqa: E402
-from shared.models.fused import _combine_rows  # noqa: E402
+from shared.models.fused import _combine_rows, _qkv_pairs_store  # noqa: E402
 
 OUT = os.environ.get("OUT", "/tmp")
 
@@ -120,31 +120,9 @@ def _qkv_unit(pid_n, x_ptr, ss_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, k_ptr, v_ptr
     r = _inv_rms(ss_ptr, offs_m, m_ok, K, eps, SS_T)
     acc1 = acc1 * r[:, None]
     acc2 = acc2 * r[:, None]
-    head = (pid_n * BN) // HALF
-    p = j - head * HALF
-    bi = offs_m // S
-    si = offs_m % S
-    mask = m_ok[:, None]
-    y0 = acc1
-    y1 = acc2
-    if head < n_q + n_kv:
-        cs = bi[:, None] * cos_sb + si[:, None] * cos_ss + p[None, :]
-        c = tl.load(cos_ptr + cs, mask=mask, other=0.0)
-        sn = tl.load(sin_ptr + cs, mask=mask, other=0.0)
-        y0 = acc1 * c - acc2 * sn
-        y1 = acc1 * sn + acc2 * c
-    if head < n_q:
-        dst = q_ptr + bi * q_sb + si * q_ss + head * q_sh
-    elif head < n_q + n_kv:
-        dst = k_ptr + bi * k_sb + si * k_ss + (head - n_q) * k_sh
-    else:
-        dst = v_ptr + bi * v_sb + si * v_ss + (head - n_q - n_kv) * v_sh
-    if INTERLEAVE:  # one contiguous store of the rotated pairs
-        cols = 2 * (pid_n * BN - head * HALF) + tl.arange(0, 2 * BN)
-        tl.store(dst[:, None] + cols[None, :], tl.interleave(y0, y1).to(q_ptr.dtype.element_ty), mask=mask)
-    else:
-        tl.store(dst[:, None] + 2 * p[None, :], y0.to(q_ptr.dtype.element_ty), mask=mask)
-        tl.store(dst[:, None] + 2 * p[None, :] + 1, y1.to(q_ptr.dtype.element_ty), mask=mask)
+    _qkv_pairs_store(acc1, acc2, pid_n, offs_m, m_ok[:, None], S, n_q, n_kv, cos_ptr, sin_ptr, cos_sb, cos_ss,
+                    q_ptr, k_ptr, v_ptr, q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh,
+                    True, HALF, BN, INTERLEAVE)
 
 
 @triton.jit

@@ -433,6 +433,39 @@ def fast_gemm_ok(x: torch.Tensor, rows: int) -> bool:
 if triton is not None:
 
     @triton.jit
+    def _qkv_pairs_store(acc1, acc2, pid_n, offs_m, mask, S, n_q, n_kv, cos_ptr, sin_ptr, cos_sb, cos_ss,
+                        q_ptr, k_ptr, v_ptr, q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh,
+                        ROPE: tl.constexpr, HALF: tl.constexpr, BN: tl.constexpr, INTERLEAVE: tl.constexpr):
+        # Epilogue of a fused QKV GEMM tile whose columns are the interleaved pairs (2j, 2j+1),
+        # j = pid_n * BN + [0, BN) within one head (BN divides HALF): RoPE on q and k heads,
+        # then the store into q, k or v. INTERLEAVE writes each row's pairs in one contiguous store.
+        head = (pid_n * BN) // HALF
+        p = pid_n * BN + tl.arange(0, BN) - head * HALF
+        bi = offs_m // S
+        si = offs_m % S
+        y0 = acc1
+        y1 = acc2
+        if ROPE:
+            if head < n_q + n_kv:
+                cs = bi[:, None] * cos_sb + si[:, None] * cos_ss + p[None, :]
+                c = tl.load(cos_ptr + cs, mask=mask, other=0.0)
+                sn = tl.load(sin_ptr + cs, mask=mask, other=0.0)
+                y0 = acc1 * c - acc2 * sn
+                y1 = acc1 * sn + acc2 * c
+        if head < n_q:
+            dst = q_ptr + bi * q_sb + si * q_ss + head * q_sh
+        elif head < n_q + n_kv:
+            dst = k_ptr + bi * k_sb + si * k_ss + (head - n_q) * k_sh
+        else:
+            dst = v_ptr + bi * v_sb + si * v_ss + (head - n_q - n_kv) * v_sh
+        if INTERLEAVE:
+            cols = 2 * (pid_n * BN - head * HALF) + tl.arange(0, 2 * BN)
+            tl.store(dst[:, None] + cols[None, :], tl.interleave(y0, y1).to(q_ptr.dtype.element_ty), mask=mask)
+        else:
+            tl.store(dst[:, None] + 2 * p[None, :], y0.to(q_ptr.dtype.element_ty), mask=mask)
+            tl.store(dst[:, None] + 2 * p[None, :] + 1, y1.to(q_ptr.dtype.element_ty), mask=mask)
+
+    @triton.jit
     def _norm_gemm_kernel(x_ptr, nw_ptr, w_ptr, bias_ptr, out_ptr, cos_ptr, sin_ptr, q_ptr, k_ptr, v_ptr,
                           M, K, N1, S, stride_x, stride_w, stride_o, row2_off, eps,
                           n_q, n_kv, cos_sb, cos_ss, q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh,
@@ -481,27 +514,9 @@ if triton is not None:
                 acc1 += tl.load(bias_ptr + j, mask=j_ok, other=0.0).to(tl.float32)[None, :]
             tl.store(out_ptr + offs_m[:, None] * stride_o + j[None, :], acc1.to(out_ptr.dtype.element_ty), mask=mask)
         elif MODE == 3:
-            head = (pid_n * BN) // HALF  # BN divides HALF: one head per program
-            p = j - head * HALF
-            bi = offs_m // S
-            si = offs_m % S
-            y0 = acc1
-            y1 = acc2
-            if ROPE:
-                if head < n_q + n_kv:
-                    cs = bi[:, None] * cos_sb + si[:, None] * cos_ss + p[None, :]
-                    c = tl.load(cos_ptr + cs, mask=mask, other=0.0)
-                    sn = tl.load(sin_ptr + cs, mask=mask, other=0.0)
-                    y0 = acc1 * c - acc2 * sn
-                    y1 = acc1 * sn + acc2 * c
-            if head < n_q:
-                dst = q_ptr + bi * q_sb + si * q_ss + head * q_sh
-            elif head < n_q + n_kv:
-                dst = k_ptr + bi * k_sb + si * k_ss + (head - n_q) * k_sh
-            else:
-                dst = v_ptr + bi * v_sb + si * v_ss + (head - n_q - n_kv) * v_sh
-            tl.store(dst[:, None] + 2 * p[None, :], y0.to(q_ptr.dtype.element_ty), mask=mask)
-            tl.store(dst[:, None] + 2 * p[None, :] + 1, y1.to(q_ptr.dtype.element_ty), mask=mask)
+            _qkv_pairs_store(acc1, acc2, pid_n, offs_m, mask, S, n_q, n_kv, cos_ptr, sin_ptr, cos_sb, cos_ss,
+                            q_ptr, k_ptr, v_ptr, q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh,
+                            ROPE, HALF, BN, False)
         else:
             if MODE == 1:
                 g = acc1.to(out_ptr.dtype.element_ty).to(tl.float32)
