@@ -31,8 +31,20 @@ is not on main.
     OUT=/tmp SWEEP=2 CORUN=1 RUNS=1 ITERS=30 python bench/experiments/persistent_layer.py  # tile sweep 2
     OUT=/tmp DISJOINT=1 CORUN=1 RUNS=2 ITERS=30 python bench/experiments/persistent_layer.py  # + own partition
 
+    # TMA loads, the action stage on a small partition of its own beside the VLM (batch 2)
+    OUT=/tmp OUT_NAME=kernel_exp_small_partition_h100.json SWEEP=5 SMALL=24,32 SMALL_SET=main,tma_b \
+        BATCHES=2 ITERS=30 python bench/experiments/persistent_layer.py
+
 SWEEP defaults to 3. Variants with ``timing`` stamp ``%globaltimer`` at each phase boundary;
-RUNS=2 adds batch 2.
+RUNS=2 adds batch 2 (BATCHES picks the batches). CORUN_SMS sets the VLM's green context for
+CORUN (64). SMALL lists action-partition sizes for ``small_partition_times``, SMALL_SET the
+variants of SMALL_VARIANTS it runs there. With ``tma`` the GEMM phases load their A and weight
+tiles through TMA tensor descriptors (bench/experiments/weight_streaming.py measured why).
+That second result, on an H100: on 24 or 32 SMs of its own the action stage is slower than
+main's kernels there, and the VLM alone on the other 108 SMs already takes 14.9 ms at batch 2
+(11.0 on the whole GPU). Even a perfect action kernel would leave such a lockstep at about 1.45x
+over the two stages back to back (docs/RESULTS.md, "Weight streaming per SM, and the action
+stage on a partition of its own").
 """
 from __future__ import annotations
 
@@ -50,7 +62,10 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspa
 from shared.models import build_model, fused, layers  # noqa: E402
 from shared.models.fused import _combine_rows, _qkv_pairs_store  # noqa: E402
 
+from timing import replay_ms  # noqa: E402  (this folder)
+
 OUT = os.environ.get("OUT", "/tmp")
+_ON_GPU = tl.constexpr(os.environ.get("TRITON_INTERPRET", "0") != "1")  # the CPU interpreter has no inline asm
 
 
 @triton.jit
@@ -60,7 +75,14 @@ def _ld_acquire(ptr):
 
 
 @triton.jit
-def _grid_sync(bar_ptr, target, POLL_LOAD: tl.constexpr):
+def _fence_proxy_async():
+    # Generic-proxy stores of other programs, ordered before this program's TMA (async-proxy) reads.
+    tl.inline_asm_elementwise("fence.proxy.async.global; mov.u32 $0, 0;", "=r", [], dtype=tl.int32,
+                              is_pure=False, pack=1)
+
+
+@triton.jit
+def _grid_sync(bar_ptr, target, POLL_LOAD: tl.constexpr, TMA: tl.constexpr = False):
     # Cooperative-groups style: every thread's stores are done (bar.sync), one release
     # arrival per program, spin on an acquire until all programs of this phase arrived.
     tl.debug_barrier()
@@ -73,6 +95,8 @@ def _grid_sync(bar_ptr, target, POLL_LOAD: tl.constexpr):
         cur = tl.atomic_add(bar_ptr, 0, sem="acquire", scope="gpu")
         while cur < target:
             cur = tl.atomic_add(bar_ptr, 0, sem="acquire", scope="gpu")
+    if TMA and _ON_GPU:
+        _fence_proxy_async()
     tl.debug_barrier()
 
 
@@ -85,10 +109,11 @@ def _stamp(ts_ptr, pid, idx, TIMING: tl.constexpr):
 
 
 @triton.jit
-def _phase_end(ts_ptr, bar_ptr, pid, nprog, k, TIMING: tl.constexpr, POLL_LOAD: tl.constexpr):
+def _phase_end(ts_ptr, bar_ptr, pid, nprog, k, TIMING: tl.constexpr, POLL_LOAD: tl.constexpr,
+               TMA: tl.constexpr = False):
     """The grid barrier after phase ``k`` (1-based), stamped on both sides."""
     _stamp(ts_ptr, pid, 2 * k - 1, TIMING)
-    _grid_sync(bar_ptr, k * nprog, POLL_LOAD)
+    _grid_sync(bar_ptr, k * nprog, POLL_LOAD, TMA)
     _stamp(ts_ptr, pid, 2 * k, TIMING)
 
 
@@ -104,17 +129,22 @@ def _inv_rms(ss_ptr, offs_m, m_ok, K, eps, SS_T: tl.constexpr):
 def _qkv_unit(pid_n, x_ptr, ss_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, k_ptr, v_ptr, M, K, S, eps,
               n_q, n_kv, stride_x, cos_sb, cos_ss, q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh,
               SS_T: tl.constexpr, HALF: tl.constexpr, BM: tl.constexpr, BN: tl.constexpr, BK: tl.constexpr,
-              ST: tl.constexpr, INTERLEAVE: tl.constexpr):
+              ST: tl.constexpr, INTERLEAVE: tl.constexpr, TMA: tl.constexpr = False, x_desc=None, w_desc=None):
     offs_m = tl.arange(0, BM)
     m_ok = offs_m < M
     j = pid_n * BN + tl.arange(0, BN)  # RoPE pair index over all heads
     acc1 = tl.zeros([BM, BN], tl.float32)
     acc2 = tl.zeros([BM, BN], tl.float32)
     for k0 in tl.range(0, K, BK, num_stages=ST):
-        offs_k = k0 + tl.arange(0, BK)
-        a = tl.load(x_ptr + offs_m[:, None] * stride_x + offs_k[None, :], mask=m_ok[:, None], other=0.0)
-        w1 = tl.load(w_ptr + (2 * j)[:, None] * K + offs_k[None, :])
-        w2 = tl.load(w_ptr + (2 * j + 1)[:, None] * K + offs_k[None, :])
+        if TMA:  # w_desc views the weight as [pairs, 2K]: a pair's two rows side by side
+            a = x_desc.load([0, k0])
+            w1 = w_desc.load([pid_n * BN, k0])
+            w2 = w_desc.load([pid_n * BN, K + k0])
+        else:
+            offs_k = k0 + tl.arange(0, BK)
+            a = tl.load(x_ptr + offs_m[:, None] * stride_x + offs_k[None, :], mask=m_ok[:, None], other=0.0)
+            w1 = tl.load(w_ptr + (2 * j)[:, None] * K + offs_k[None, :])
+            w2 = tl.load(w_ptr + (2 * j + 1)[:, None] * K + offs_k[None, :])
         acc1 = tl.dot(a, tl.trans(w1), acc1)
         acc2 = tl.dot(a, tl.trans(w2), acc2)
     r = _inv_rms(ss_ptr, offs_m, m_ok, K, eps, SS_T)
@@ -175,7 +205,8 @@ def _attn_unit(unit, q_ptr, k_ptr, v_ptr, bias_ptr, o_ptr, part_ptr, ml_ptr, cnt
 @triton.jit
 def _res_unit(unit, x_ptr, w_ptr, res_ptr, out_ptr, ss_out_ptr, part_ptr, cnt_ptr, M, N, K, k_chunk,
               stride_x, stride_r, stride_o, SPLIT: tl.constexpr, SS_OUT_T: tl.constexpr,
-              BM: tl.constexpr, BN: tl.constexpr, BK: tl.constexpr, ST: tl.constexpr):
+              BM: tl.constexpr, BN: tl.constexpr, BK: tl.constexpr, ST: tl.constexpr,
+              TMA: tl.constexpr = False, x_desc=None, w_desc=None):
     pid_s = unit % SPLIT
     pid_n = unit // SPLIT
     offs_m = tl.arange(0, BM)
@@ -184,9 +215,13 @@ def _res_unit(unit, x_ptr, w_ptr, res_ptr, out_ptr, ss_out_ptr, part_ptr, cnt_pt
     acc = tl.zeros([BM, BN], tl.float32)
     lo = pid_s * k_chunk
     for k0 in tl.range(lo, lo + k_chunk, BK, num_stages=ST):
-        offs_k = k0 + tl.arange(0, BK)
-        a = tl.load(x_ptr + offs_m[:, None] * stride_x + offs_k[None, :], mask=m_ok[:, None], other=0.0)
-        w = tl.load(w_ptr + offs_n[:, None] * K + offs_k[None, :])
+        if TMA:
+            a = x_desc.load([0, k0])
+            w = w_desc.load([pid_n * BN, k0])
+        else:
+            offs_k = k0 + tl.arange(0, BK)
+            a = tl.load(x_ptr + offs_m[:, None] * stride_x + offs_k[None, :], mask=m_ok[:, None], other=0.0)
+            w = tl.load(w_ptr + offs_n[:, None] * K + offs_k[None, :])
         acc = tl.dot(a, tl.trans(w), acc)
     loc = tl.arange(0, BM)[:, None] * BN + tl.arange(0, BN)[None, :]
     tl.store(part_ptr + (pid_n * SPLIT + pid_s) * BM * BN + loc, acc)
@@ -208,30 +243,35 @@ def _res_unit(unit, x_ptr, w_ptr, res_ptr, out_ptr, ss_out_ptr, part_ptr, cnt_pt
 @triton.jit
 def _res_phase(pid, nprog, a_ptr, w_ptr, res_ptr, out_ptr, ss_out_ptr, part_ptr, cnt_ptr, M, N, K, k_chunk,
                SPLIT: tl.constexpr, SS_T: tl.constexpr, BM: tl.constexpr, BN: tl.constexpr, BK: tl.constexpr,
-               ST: tl.constexpr):
+               ST: tl.constexpr, TMA: tl.constexpr = False, a_desc=None, w_desc=None):
     """``out = res + a W^T`` over all (N tile, K slice) units; contiguous rows of N / K columns."""
     n_units = (N // BN) * SPLIT
     for u0 in range(0, n_units, nprog):
         u = u0 + pid
         if u < n_units:
             _res_unit(u, a_ptr, w_ptr, res_ptr, out_ptr, ss_out_ptr, part_ptr, cnt_ptr, M, N, K, k_chunk,
-                      K, N, N, SPLIT, SS_T, BM, BN, BK, ST)
+                      K, N, N, SPLIT, SS_T, BM, BN, BK, ST, TMA, a_desc, w_desc)
 
 
 @triton.jit
 def _gate_up_unit(pid_n, x_ptr, ss_ptr, w_ptr, h_ptr, M, K, F_, eps, stride_x, stride_h,
                   SS_T: tl.constexpr, GELU: tl.constexpr, BM: tl.constexpr, BN: tl.constexpr, BK: tl.constexpr,
-                  ST: tl.constexpr):
+                  ST: tl.constexpr, TMA: tl.constexpr = False, x_desc=None, w_desc=None):
     offs_m = tl.arange(0, BM)
     m_ok = offs_m < M
     j = pid_n * BN + tl.arange(0, BN)
     acc1 = tl.zeros([BM, BN], tl.float32)
     acc2 = tl.zeros([BM, BN], tl.float32)
     for k0 in tl.range(0, K, BK, num_stages=ST):
-        offs_k = k0 + tl.arange(0, BK)
-        a = tl.load(x_ptr + offs_m[:, None] * stride_x + offs_k[None, :], mask=m_ok[:, None], other=0.0)
-        w1 = tl.load(w_ptr + j[:, None] * K + offs_k[None, :])
-        w2 = tl.load(w_ptr + (j + F_)[:, None] * K + offs_k[None, :])
+        if TMA:
+            a = x_desc.load([0, k0])
+            w1 = w_desc.load([pid_n * BN, k0])
+            w2 = w_desc.load([F_ + pid_n * BN, k0])
+        else:
+            offs_k = k0 + tl.arange(0, BK)
+            a = tl.load(x_ptr + offs_m[:, None] * stride_x + offs_k[None, :], mask=m_ok[:, None], other=0.0)
+            w1 = tl.load(w_ptr + j[:, None] * K + offs_k[None, :])
+            w2 = tl.load(w_ptr + (j + F_)[:, None] * K + offs_k[None, :])
         acc1 = tl.dot(a, tl.trans(w1), acc1)
         acc2 = tl.dot(a, tl.trans(w2), acc2)
     r = _inv_rms(ss_ptr, offs_m, m_ok, K, eps, SS_T)
@@ -257,7 +297,8 @@ def _layer_kernel(x_ptr, ss0_ptr, wqkv_ptr, cos_ptr, sin_ptr, q_ptr, k_ptr, v_pt
                   SPLIT: tl.constexpr, GELU: tl.constexpr, BM: tl.constexpr, BN_QKV: tl.constexpr,
                   BN: tl.constexpr, BK_QKV: tl.constexpr, BK_GU: tl.constexpr, BK_O: tl.constexpr,
                   BK_D: tl.constexpr, ST: tl.constexpr, A_BM: tl.constexpr, A_BN: tl.constexpr, A_ST: tl.constexpr,
-                  INTERLEAVE: tl.constexpr):
+                  INTERLEAVE: tl.constexpr, TMA: tl.constexpr = False, x_d=None, wqkv_d=None, attn_d=None,
+                  wo_d=None, x1_d=None, wgu_d=None, h_d=None, wd_d=None):
     pid = tl.program_id(0)  # nprog: the grid size (an argument: the interpreter's num_programs is an array)
     _stamp(ts_ptr, pid, 0, TIMING)
     # 1. norm + QKV + RoPE + KV write
@@ -267,7 +308,7 @@ def _layer_kernel(x_ptr, ss0_ptr, wqkv_ptr, cos_ptr, sin_ptr, q_ptr, k_ptr, v_pt
         if u < n_units:
             _qkv_unit(u, x_ptr, ss0_ptr, wqkv_ptr, cos_ptr, sin_ptr, q_ptr, k_ptr, v_ptr, M, W, S, eps,
                       n_q, n_kv, W, cos_sb, cos_ss, q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh,
-                      SS0_T, HALF, BM, BN_QKV, BK_QKV, ST, INTERLEAVE)
+                      SS0_T, HALF, BM, BN_QKV, BK_QKV, ST, INTERLEAVE, TMA, x_d, wqkv_d)
     _phase_end(ts_ptr, bar_ptr, pid, nprog, 1, TIMING, POLL_LOAD)
     # 2. attention over [prefix ; state ; actions]; q rows fold the query heads of a KV head
     n_bh = (M // S) * n_kv
@@ -277,26 +318,27 @@ def _layer_kernel(x_ptr, ss0_ptr, wqkv_ptr, cos_ptr, sin_ptr, q_ptr, k_ptr, v_pt
             _attn_unit(u, q_ptr, ka_ptr, va_ptr, bias_ptr, attn_ptr, apart_ptr, aml_ptr, cnt_ptr, Mq, L, n_kv,
                        split_len, sm_scale, S * n_q * D, D, n_kv * D, ka_sb, ka_sh, ka_sl, va_sb, va_sh, va_sl,
                        b_sb, b_sm, S * n_q * D, D, n_kv * D, n_mb, NS, D, A_BM, A_BN, A_ST)
-    _phase_end(ts_ptr, bar_ptr, pid, nprog, 2, TIMING, POLL_LOAD)
+    _phase_end(ts_ptr, bar_ptr, pid, nprog, 2, TIMING, POLL_LOAD, TMA)
     # 3. o projection + residual -> x1 (+ its per-tile sums of squares)
     _res_phase(pid, nprog, attn_ptr, wo_ptr, x_ptr, x1_ptr, ss1_ptr, gpart_ptr, cnt_ptr + 4096, M, W, NQD, o_chunk,
-               SPLIT, SS_T, BM, BN, BK_O, ST)
-    _phase_end(ts_ptr, bar_ptr, pid, nprog, 3, TIMING, POLL_LOAD)
+               SPLIT, SS_T, BM, BN, BK_O, ST, TMA, attn_d, wo_d)
+    _phase_end(ts_ptr, bar_ptr, pid, nprog, 3, TIMING, POLL_LOAD, TMA)
     # 4. norm + gate/up + activation -> h
     for u0 in range(0, F_ // BN, nprog):
         u = u0 + pid
         if u < F_ // BN:
-            _gate_up_unit(u, x1_ptr, ss1_ptr, wgu_ptr, h_ptr, M, W, F_, eps, W, F_, SS_T, GELU, BM, BN, BK_GU, ST)
-    _phase_end(ts_ptr, bar_ptr, pid, nprog, 4, TIMING, POLL_LOAD)
+            _gate_up_unit(u, x1_ptr, ss1_ptr, wgu_ptr, h_ptr, M, W, F_, eps, W, F_, SS_T, GELU, BM, BN, BK_GU, ST,
+                          TMA, x1_d, wgu_d)
+    _phase_end(ts_ptr, bar_ptr, pid, nprog, 4, TIMING, POLL_LOAD, TMA)
     # 5. down projection + residual -> out (+ sums of squares for the next layer's norm)
     _res_phase(pid, nprog, h_ptr, wd_ptr, x1_ptr, out_ptr, ss2_ptr, gpart_ptr, cnt_ptr + 4096, M, W, F_, d_chunk,
-               SPLIT, SS_T, BM, BN, BK_D, ST)
+               SPLIT, SS_T, BM, BN, BK_D, ST, TMA, h_d, wd_d)
     _stamp(ts_ptr, pid, 9, TIMING)
 
 
 CFG = {"timing": False, "poll_load": False, "grid": None, "bn_qkv": 16, "bn": 32, "split": 4, "warps": 4,
        "bk_qkv": 64, "bk_gu": 64, "bk_o": 64, "bk_d": 64, "stages": 3, "a_bm": 16, "a_bn": None, "a_stages": 3,
-       "attn_one_wave": False, "interleave": False}
+       "attn_one_wave": False, "interleave": False, "tma": False}
 
 
 class PersistentState:
@@ -368,6 +410,16 @@ def layer_persistent(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: Persi
     b_sm = bias.stride(2) if bias.shape[2] > 1 else 0
     bar = st.bar[st.next_bar:]
     st.next_bar += 1
+    descs = {}
+    if CFG["tma"]:  # TMA descriptors: the A tiles' rows past m read as zeros
+        from triton.tools.tensor_descriptor import TensorDescriptor as TD
+        bq, bk_q, bk_gu, bk_o, bk_d = CFG["bn_qkv"], CFG["bk_qkv"], CFG["bk_gu"], CFG["bk_o"], CFG["bk_d"]
+        wo, wd = at.o.weight, layer.mlp.down.weight
+        descs = dict(TMA=True, x_d=TD(x2, [m, w], [w, 1], [bm, bk_q]),
+                     wqkv_d=TD.from_tensor(wqkv.view(wqkv.shape[0] // 2, 2 * w), [bq, bk_q]),
+                     attn_d=TD(attn, [m, n_q * d], [n_q * d, 1], [bm, bk_o]), wo_d=TD.from_tensor(wo, [bn, bk_o]),
+                     x1_d=TD(x1, [m, w], [w, 1], [bm, bk_gu]), wgu_d=TD.from_tensor(wgu, [bn, bk_gu]),
+                     h_d=TD(h, [m, f], [f, 1], [bm, bk_d]), wd_d=TD.from_tensor(wd, [bn, bk_d]))
     _layer_kernel[(grid,)](
         x2, ss0, wqkv, cos, sin, q, k_out, v_out, k_all, v_all, bias, attn, apart, aml,
         at.o.weight, x1, ss1, gpart, st.cnt, bar, wgu, h, layer.mlp.down.weight, out, ss2,
@@ -379,7 +431,8 @@ def layer_persistent(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: Persi
         TIMING=CFG["timing"], POLL_LOAD=CFG["poll_load"],
         SS0_T=ss0_t, SS_T=w // bn, HALF=d // 2, D=d, NS=ns, SPLIT=split, GELU=layer.mlp.act == "gelu_tanh", BM=bm,
         BN_QKV=CFG["bn_qkv"], BN=bn, BK_QKV=CFG["bk_qkv"], BK_GU=CFG["bk_gu"], BK_O=CFG["bk_o"], BK_D=CFG["bk_d"],
-        ST=CFG["stages"], A_BM=a_bm, A_BN=a_bn, A_ST=CFG["a_stages"], INTERLEAVE=CFG["interleave"], num_warps=CFG["warps"])
+        ST=CFG["stages"], A_BM=a_bm, A_BN=a_bn, A_ST=CFG["a_stages"], INTERLEAVE=CFG["interleave"], num_warps=CFG["warps"],
+        **descs)
     y = out.view(b, s, w)
     y._ss = ss2
     return y
@@ -413,6 +466,14 @@ PHASES = ("qkv", "attention", "o", "gate_up", "down")
 # the record's configuration: the best of sweeps 1 and 2
 RECORD = {"attn_one_wave": True, "timing": True, "bk_qkv": 128, "bk_gu": 128, "bk_o": 128, "bk_d": 128,
           "stages": 4, "warps": 8, "interleave": True, "a_bn": 64, "a_stages": 2}
+
+# TMA tensor-descriptor loads for every GEMM phase, with tiles sized for a grid of ~32
+# programs: 128-column weight tiles give 32 units in gate/up, o and down (split-K 4)
+TMA_A = {"attn_one_wave": True, "interleave": True, "a_bn": 64, "a_stages": 2, "tma": True, "bn": 128, "split": 4,
+         "bn_qkv": 64, "bk_qkv": 64, "bk_gu": 64, "bk_o": 64, "bk_d": 64, "stages": 4, "warps": 4}
+SMALL_VARIANTS = {"main": None, "ptr_record": dict(RECORD, timing=False), "ptr_a": dict(TMA_A, tma=False),
+                  "tma_a": TMA_A, "tma_b": dict(TMA_A, warps=8),
+                  "tma_c": dict(TMA_A, bn=64, split=2, bk_qkv=128, bk_gu=128, bk_o=128, bk_d=128, stages=3)}
 
 
 def phase_profile(ts: torch.Tensor, launches: int, grid: int) -> dict:
@@ -483,18 +544,60 @@ def disjoint_times(model, images, state, tokens, hand, noise, iters, vlm_sms=64)
         CFG.clear()
         CFG.update(base, **(cfg or {}))
         gr = _capture(lambda: model.action_stage(hand, noise), part.action_stream)
-        times = []
-        for i in range(iters + 5):
-            a, e = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record(part.action_stream)
-            with torch.cuda.stream(part.action_stream):
-                gr.replay()
-            e.record(part.action_stream)
-            e.synchronize()
-            if i >= 5:
-                times.append(a.elapsed_time(e))
         res[name] = dict(_pair_times(gv, part.vlm_stream, gr, part.action_stream, iters),
-                         action_alone_p50_ms=statistics.median(times))
+                         action_alone_p50_ms=_alone_ms(gr, part.action_stream, iters))
+    CFG.clear()
+    CFG.update(base)
+    MODE["persistent"] = False
+    return res
+
+
+def _alone_ms(graph, stream, iters):
+    return statistics.median(replay_ms(graph, stream, iters))
+
+
+def small_partition_times(model, images, state, tokens, hand, noise, iters, action_sms_list, variants) -> dict:
+    """The action stage on a small partition of its own, the VLM on the rest of the GPU.
+
+    The action group is split off first so that it gets exactly ``n`` SMs (a multiple of 8)
+    and the VLM the remainder. Each variant runs with one program per action SM. Reported per
+    partition: the VLM alone on the whole GPU and on its partition, each variant's action
+    stage alone on its partition, both stages side by side (a lockstep of this partition),
+    and the variant's output against main's on the whole GPU."""
+    from services.executor.sm import split_disjoint
+    dev = torch.device("cuda", 0)
+    plain = torch.cuda.Stream()
+    base = dict(CFG)
+    MODE["persistent"] = False
+    ref = model.action_stage(hand, noise).float()
+    g_full = _capture(lambda: model.vlm_stage(images, state, tokens), plain)
+    res = {"vlm_alone_full_gpu_p50_ms": _alone_ms(g_full, plain, iters), "partitions": []}
+    print(json.dumps({"vlm_alone_full_gpu_p50_ms": res["vlm_alone_full_gpu_p50_ms"]}), flush=True)
+    for n in action_sms_list:
+        part = split_disjoint(dev, n)  # first group: the action stage's n SMs
+        act_stream, vlm_stream = part.vlm_stream, part.action_stream
+        gv = _capture(lambda: model.vlm_stage(images, state, tokens), vlm_stream)
+        row = {"action_sms": part.vlm_sms, "vlm_sms": part.action_sms,
+               "vlm_alone_on_partition_p50_ms": _alone_ms(gv, vlm_stream, iters), "variants": {}}
+        for name, cfg in variants.items():
+            MODE["persistent"] = cfg is not None
+            CFG.clear()
+            CFG.update(base, **(dict(cfg, grid=part.vlm_sms) if cfg is not None else {}))
+            try:
+                out_box = []
+                gr = _capture(lambda: out_box.append(model.action_stage(hand, noise)), act_stream)
+                gr.replay()
+                torch.cuda.synchronize()
+                out = out_box[-1].float()
+                row["variants"][name] = dict(_pair_times(gv, vlm_stream, gr, act_stream, iters),
+                                             action_alone_p50_ms=_alone_ms(gr, act_stream, iters),
+                                             rel_err_vs_main=float((out - ref).norm() / ref.norm()))
+            except Exception as exc:  # a configuration that does not fit is a result too
+                row["variants"][name] = {"error": repr(exc)[:500]}
+            print(json.dumps({"partition": n, "vlm_alone_on_partition_p50_ms": row["vlm_alone_on_partition_p50_ms"],
+                              name: row["variants"][name]}), flush=True)
+        res["partitions"].append(row)
+        del gv
     CFG.clear()
     CFG.update(base)
     MODE["persistent"] = False
@@ -569,7 +672,14 @@ def run(arch, batch, iters):
                 e.record()
                 e.synchronize()
                 times[n].append(a.elapsed_time(e))
-        corun = corun_times(model, images, state, tokens, graphs, iters) if os.environ.get("CORUN") else {}
+        corun = (corun_times(model, images, state, tokens, graphs, iters, int(os.environ.get("CORUN_SMS", "64")))
+                 if os.environ.get("CORUN") else {})
+        small = None
+        if os.environ.get("SMALL"):
+            chosen = os.environ.get("SMALL_SET", ",".join(SMALL_VARIANTS)).split(",")
+            small = small_partition_times(model, images, state, tokens, hand, noise, iters,
+                                          [int(v) for v in os.environ["SMALL"].split(",")],
+                                          {n: SMALL_VARIANTS[n] for n in chosen})
         disjoint = (disjoint_times(model, images, state, tokens, hand, noise, iters)
                     if os.environ.get("DISJOINT") else None)
         main_out = outs["main"][1]
@@ -587,6 +697,8 @@ def run(arch, batch, iters):
     MODE["persistent"] = False
     if disjoint is not None:
         res["disjoint"] = disjoint
+    if small is not None:
+        res["small_partition"] = small
     return res
 
 
@@ -616,14 +728,21 @@ def main():
         # the record: the best of sweeps 1 and 2, untimed, with per-phase stamps, and on 64 programs
         "3": {"persistent": dict(rec, timing=False), "persistent_phases": rec,
               "persistent_grid64": dict(rec, timing=False, grid=64)},
+        # TMA loads; alone on the whole GPU and on 32 programs, with per-phase stamps
+        "4": {"persistent": dict(rec, timing=False), "tma_a": TMA_A,
+              "ptr_a_grid32": dict(TMA_A, tma=False, grid=32, timing=True),
+              "tma_a_grid32": dict(TMA_A, grid=32, timing=True)},
+        # the 8-warp TMA tiles on 32 programs, with per-phase stamps
+        "5": {"tma_b_grid32": dict(TMA_A, warps=8, grid=32, timing=True)},
     }[sweep])
-    for arch, batch in [("pi0", 1), ("pi0", 2)][:int(os.environ.get("RUNS", "2"))]:
+    batches = [int(v) for v in os.environ.get("BATCHES", "1,2").split(",")][:int(os.environ.get("RUNS", "2"))]
+    for arch, batch in [("pi0", b) for b in batches]:
         try:
             results["runs"].append(run(arch, batch, iters))
         except Exception as exc:  # keep the other runs' numbers
             results["runs"].append({"arch": arch, "batch": batch, "error": repr(exc)[:2000]})
         print(json.dumps(results["runs"][-1]), flush=True)
-    with open(os.path.join(OUT, "kernel_exp_persistent_layer.json"), "w") as fh:
+    with open(os.path.join(OUT, os.environ.get("OUT_NAME", "kernel_exp_persistent_layer.json")), "w") as fh:
         json.dump(results, fh, indent=1)
     print(f"\n{results['gpu']} action stage p50 ms (rel err vs main)")
     for r in results["runs"]:
