@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from shared.models import fused
 from shared.models.base import Handoff, ModelIO, VLAModel
 from shared.models.layers import (MLP, Attention, DecoderLayer, GatedMLP, ViTBlock, ada_layer_norm, attention,
                                   attn_bias, camera_names, gated_act, images_to_patches, init_weights,
@@ -108,9 +109,7 @@ class VisionTower(nn.Module):
         g = c.vit_size // c.patch
         x = images_to_patches(images, c.vit_size, c.patch, self.pos_embed.dtype)
         x = self.patch_embed(x.repeat(1, 1, c.temporal_patch))
-        pos = self.pos_embed.t().reshape(1, -1, c.vit_pos_grid, c.vit_pos_grid)
-        pos = F.interpolate(pos, size=(g, g), mode="bilinear", align_corners=False)[0].flatten(1).t()
-        x = x + pos
+        x = x + fused.resize_table(self.pos_embed, c.vit_pos_grid, g)
         idx = torch.arange(g, device=x.device)
         rope = rope_cos_sin_2d(idx.repeat_interleave(g)[None], idx.repeat(g)[None], c.vit_width // c.vit_heads)
         taps = []

@@ -59,6 +59,18 @@ def test_gated_act_matches_reference(act):
 
 
 @needs_cuda
+@pytest.mark.parametrize("grid,size,c,dtype", [(48, 16, 1152, torch.bfloat16), (48, 24, 64, torch.float32),
+                                               (7, 10, 33, torch.float32), (9, 4, 2000, torch.bfloat16)])
+def test_resize_table_matches_interpolate(grid, size, c, dtype):
+    g = torch.Generator(device="cuda").manual_seed(0)
+    table = torch.randn(grid * grid, c, device="cuda", generator=g).to(dtype)
+    fast, ref = _both_paths(lambda: fused.resize_table(table, grid, size))
+    assert fast.shape == (size * size, c)
+    tol = dict(atol=1e-2, rtol=1e-2) if dtype == torch.bfloat16 else dict(atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(fast, ref, **tol)
+
+
+@needs_cuda
 @pytest.mark.parametrize("arch", ARCHS)
 def test_tiny_fp32_triton_matches_reference(arch):
     m = build_model(arch, "tiny", seed=0, device="cuda", dtype=torch.float32)
