@@ -89,54 +89,46 @@ if triton is not None:
         qkv_ptr, cos_ptr, sin_ptr, qn_ptr, kn_ptr, q_ptr, k_ptr, v_ptr,
         S, n_q, n_kv, stride_row, cos_sb, cos_ss,
         q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh, eps,
-        HALF: tl.constexpr, BLOCK: tl.constexpr, HB: tl.constexpr, ROPE: tl.constexpr, QKNORM: tl.constexpr,
+        HALF: tl.constexpr, BLOCK: tl.constexpr, ROPE: tl.constexpr, QKNORM: tl.constexpr,
     ):
-        # One program per (row, group of HB heads): a program per (row, head) made tens of
-        # thousands of one-warp programs for a ViT's 512 rows x 48 heads, which the launch and
-        # block scheduling dominated (XR0's ViT: ~11 us per call).
         row = tl.program_id(0)
+        head = tl.program_id(1)
         b = row // S
         s = row % S
-        h = tl.program_id(1) * HB + tl.arange(0, HB)
         i = tl.arange(0, BLOCK)
-        i_ok = i < HALF
-        n_qk = n_q + n_kv
-        m = (h < n_qk + n_kv)[:, None] & i_ok[None, :]
-        src = qkv_ptr + row * stride_row + h[:, None] * (2 * HALF) + 2 * i[None, :]
-        x0 = tl.load(src, mask=m, other=0.0).to(tl.float32)
-        x1 = tl.load(src + 1, mask=m, other=0.0).to(tl.float32)
-        is_q = (h < n_q)[:, None]
-        is_v = (h >= n_qk)[:, None]
-        y0 = x0
-        y1 = x1
-        if QKNORM:
-            r = tl.rsqrt((tl.sum(x0 * x0, 1) + tl.sum(x1 * x1, 1)) / (2 * HALF) + eps)[:, None]
-            w0 = tl.where(is_q, tl.load(qn_ptr + 2 * i, mask=i_ok, other=0.0).to(tl.float32)[None, :],
-                          tl.load(kn_ptr + 2 * i, mask=i_ok, other=0.0).to(tl.float32)[None, :])
-            w1 = tl.where(is_q, tl.load(qn_ptr + 2 * i + 1, mask=i_ok, other=0.0).to(tl.float32)[None, :],
-                          tl.load(kn_ptr + 2 * i + 1, mask=i_ok, other=0.0).to(tl.float32)[None, :])
-            y0 = x0 * r * w0
-            y1 = x1 * r * w1
-        if ROPE:
-            c = tl.load(cos_ptr + b * cos_sb + s * cos_ss + i, mask=i_ok, other=0.0)[None, :]
-            sn = tl.load(sin_ptr + b * cos_sb + s * cos_ss + i, mask=i_ok, other=0.0)[None, :]
-            r0 = y0 * c - y1 * sn
-            y1 = y0 * sn + y1 * c
-            y0 = r0
-        y0 = tl.where(is_v, x0, y0)  # v heads pass through untouched
-        y1 = tl.where(is_v, x1, y1)
-        dq = q_ptr + b * q_sb + s * q_ss + h[:, None] * q_sh + 2 * i[None, :]
-        dk = k_ptr + b * k_sb + s * k_ss + (h - n_q)[:, None] * k_sh + 2 * i[None, :]
-        dv = v_ptr + b * v_sb + s * v_ss + (h - n_qk)[:, None] * v_sh + 2 * i[None, :]
-        mq = m & is_q
-        mk = m & (h >= n_q)[:, None] & (h < n_qk)[:, None]
-        mv = m & is_v
-        tl.store(dq, y0.to(q_ptr.dtype.element_ty), mask=mq)
-        tl.store(dq + 1, y1.to(q_ptr.dtype.element_ty), mask=mq)
-        tl.store(dk, y0.to(k_ptr.dtype.element_ty), mask=mk)
-        tl.store(dk + 1, y1.to(k_ptr.dtype.element_ty), mask=mk)
-        tl.store(dv, y0.to(v_ptr.dtype.element_ty), mask=mv)
-        tl.store(dv + 1, y1.to(v_ptr.dtype.element_ty), mask=mv)
+        m = i < HALF
+        src = qkv_ptr + row * stride_row + head * 2 * HALF
+        x0 = tl.load(src + 2 * i, mask=m, other=0.0).to(tl.float32)
+        x1 = tl.load(src + 2 * i + 1, mask=m, other=0.0).to(tl.float32)
+        if head < n_q + n_kv:
+            if QKNORM:
+                r = tl.rsqrt((tl.sum(x0 * x0, 0) + tl.sum(x1 * x1, 0)) / (2 * HALF) + eps)
+                if head < n_q:
+                    w0 = tl.load(qn_ptr + 2 * i, mask=m, other=0.0).to(tl.float32)
+                    w1 = tl.load(qn_ptr + 2 * i + 1, mask=m, other=0.0).to(tl.float32)
+                else:
+                    w0 = tl.load(kn_ptr + 2 * i, mask=m, other=0.0).to(tl.float32)
+                    w1 = tl.load(kn_ptr + 2 * i + 1, mask=m, other=0.0).to(tl.float32)
+                x0 = x0 * r * w0
+                x1 = x1 * r * w1
+            if ROPE:
+                c = tl.load(cos_ptr + b * cos_sb + s * cos_ss + i, mask=m, other=0.0)
+                sn = tl.load(sin_ptr + b * cos_sb + s * cos_ss + i, mask=m, other=0.0)
+                y0 = x0 * c - x1 * sn
+                y1 = x0 * sn + x1 * c
+            else:
+                y0 = x0
+                y1 = x1
+            if head < n_q:
+                dst = q_ptr + b * q_sb + s * q_ss + head * q_sh
+            else:
+                dst = k_ptr + b * k_sb + s * k_ss + (head - n_q) * k_sh
+            tl.store(dst + 2 * i, y0.to(dst.dtype.element_ty), mask=m)
+            tl.store(dst + 2 * i + 1, y1.to(dst.dtype.element_ty), mask=m)
+        else:
+            dst = v_ptr + b * v_sb + s * v_ss + (head - n_q - n_kv) * v_sh
+            tl.store(dst + 2 * i, x0.to(dst.dtype.element_ty), mask=m)
+            tl.store(dst + 2 * i + 1, x1.to(dst.dtype.element_ty), mask=m)
 
     @triton.jit
     def _resize_table_kernel(src_ptr, out_ptr, G, g, C, scale, BLOCK_C: tl.constexpr):
@@ -396,16 +388,15 @@ def split_qkv(qkv: torch.Tensor, n_q: int, n_kv: int, head_dim: int,
         cos = sin = qkv
         cos_sb = cos_ss = 0
     qknorm = q_norm is not None
-    heads = n_q + 2 * n_kv
-    block = triton.next_power_of_2(half)
-    hb = min(triton.next_power_of_2(heads), max(1, 2048 // block))  # up to 2048 pairs a program
-    _split_qkv_kernel[(b * s, triton.cdiv(heads, hb))](
+    grid = (b * s, n_q + 2 * n_kv)
+    _split_qkv_kernel[grid](
         qkv, cos, sin, q_norm if qknorm else qkv, k_norm if qknorm else qkv, q, k_out, v_out,
         s, n_q, n_kv, qkv.stride(1), cos_sb, cos_ss,
         q.stride(0), q.stride(1), q.stride(2),
         k_out.stride(0), k_out.stride(2), k_out.stride(1),
         v_out.stride(0), v_out.stride(2), v_out.stride(1), eps,
-        HALF=half, BLOCK=block, HB=hb, ROPE=rope, QKNORM=qknorm, num_warps=4,
+        HALF=half, BLOCK=triton.next_power_of_2(half), ROPE=rope, QKNORM=qknorm,
+        num_warps=1 if half <= 64 else 2,
     )
     return q
 
