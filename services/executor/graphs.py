@@ -5,6 +5,14 @@ Why one VLM graph per SM level: a captured kernel keeps the execution context (a
 SM limit) of the stream it was captured on, whatever stream replays it. Restricting the
 VLM stage to a level therefore means capturing it on that level's green-context stream.
 
+Why restricted VLM graphs are captured through cuBLASLt with an SM-count target: cuBLAS
+picks a GEMM's kernel for the whole GPU, and a tile grid sized for one wave on 132 SMs takes
+two waves on 128. On an H100, pi0's VLM at batch 2 took 12.9 ms on a 128-SM green context
+against 10.8 ms on all 132 SMs, and one GEMM kernel went from 1.7 to 3.1 ms. cuBLASLt's
+matmul descriptor carries the SM count to plan for (torch sets it from its SM carveout), and
+a graph keeps the kernels chosen at capture: captured that way, the same VLM took 10.9 ms on
+128 SMs and 12.5 instead of 14.8 on 96 (docs/RESULTS.md, "cuBLAS told the SM level").
+
 Memory: all VLM graphs share one pool and all action graphs another (pools are passed in,
 so co-located models share them too). Graphs of one pool never run concurrently (one VLM
 stream, one action stream), and every tensor a graph hands on lives in buffers allocated
@@ -13,8 +21,10 @@ outside the pools, so a later replay of another graph can only overwrite dead in
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -26,6 +36,25 @@ from shared.models.base import VLAModel
 log = logging.getLogger(__name__)
 
 WARMUP_RUNS = 2  # eager runs on the capture stream first: cuBLAS workspaces, lazy inits, autotuning
+
+
+@contextlib.contextmanager
+def gemm_sm_target(level: Level, total_sms: int | None):
+    """GEMMs issued inside go through cuBLASLt planned for ``level`` SMs (nothing changes for
+    ``None``, the whole GPU). Process-wide torch settings, restored on exit: capture only."""
+    if level is None or total_sms is None or not hasattr(torch._C, "_set_sm_carveout_experimental"):
+        yield
+        return
+    blas = torch.backends.cuda.preferred_blas_library()
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*SM carveout.*")  # torch calls the knob experimental
+            torch._C._set_sm_carveout_experimental(total_sms - level)
+        torch.backends.cuda.preferred_blas_library("cublaslt")
+        yield
+    finally:
+        torch._C._set_sm_carveout_experimental(None)
+        torch.backends.cuda.preferred_blas_library(blas)
 
 
 @dataclass
@@ -86,8 +115,9 @@ class GraphStages(BufferedStages):
         t0 = time.perf_counter()
         for level in sorted(levels, key=lambda lv: (lv is None, lv or 0)):
             if (b, level) not in self.vlm_graphs:
-                self.vlm_graphs[(b, level)] = self._capture(lambda: self._vlm_body(b), self._stream(level),
-                                                            self.pools.vlm)
+                stream = self._stream(level)
+                with gemm_sm_target(level, self.green.total_sms if self.green is not None else None):
+                    self.vlm_graphs[(b, level)] = self._capture(lambda: self._vlm_body(b), stream, self.pools.vlm)
         dt = time.perf_counter() - t0
         self.capture_s += dt
         log.debug("%s: VLM graphs for batch %d at levels %s in %.2f s", self.arch, b,

@@ -167,6 +167,43 @@ def test_lockstep_results_equal_eager_single_and_co_located(policy):
         assert set(summary["sm_levels"]) - {"None"}, "some lockstep should have run restricted"
 
 
+def _blas_settings() -> tuple:
+    return torch.backends.cuda.preferred_blas_library(), torch._C._get_sm_carveout_experimental()
+
+
+def test_restricted_vlm_capture_plans_gemms_for_its_level_and_restores_settings():
+    """A VLM graph captured at a level is planned through cuBLASLt for that many SMs; an
+    unrestricted one is not; torch's process-wide settings come back after each capture,
+    also when the capture fails."""
+    h = build_model("heavytoy", "full", seed=7, device=DEV)
+    eng, _ = _engine({"h": h}, EngineConfig(kind="robion", max_batch=2), StaticLevel(64))
+    st = eng.stages["h"]
+    before = _blas_settings()
+    seen: list[tuple] = []
+    body = st._vlm_body
+
+    def spying(b):
+        seen.append(_blas_settings())
+        return body(b)
+
+    st._vlm_body = spying
+    st.drop_vlm({})
+    st.capture_vlm(1, {64, None})  # restricted levels are captured first
+    total = torch.cuda.get_device_properties(DEV).multi_processor_count
+    runs = len(seen) // 2
+    assert set(seen[:runs]) == {(torch._C._BlasBackend.Cublaslt, total - 64)}
+    assert set(seen[runs:]) == {before}
+    assert _blas_settings() == before
+
+    def failing(b):
+        raise RuntimeError("capture failed")
+
+    st._vlm_body = failing
+    with pytest.raises(RuntimeError, match="capture failed"):
+        st.capture_vlm(2, {64})
+    assert _blas_settings() == before
+
+
 def test_each_model_alone_equals_eager():
     h = build_model("heavytoy", "full", seed=5, device=DEV)
     eng, results = _engine({"h": h}, EngineConfig(kind="robion", max_batch=2), StaticLevel(88))
