@@ -41,10 +41,11 @@ CORUN (64). SMALL lists action-partition sizes for ``small_partition_times``, SM
 variants of SMALL_VARIANTS it runs there. With ``tma`` the GEMM phases load their A and weight
 tiles through TMA tensor descriptors (bench/experiments/weight_streaming.py measured why).
 That second result, on an H100: on 24 or 32 SMs of its own the action stage is slower than
-main's kernels there, and the VLM alone on the other 108 SMs already takes 14.9 ms at batch 2
-(11.0 on the whole GPU). Even a perfect action kernel would leave such a lockstep at about 1.45x
-over the two stages back to back (docs/RESULTS.md, "Weight streaming per SM, and the action
-stage on a partition of its own").
+main's kernels there. The VLM alone on the other 108 SMs took 14.9 ms at batch 2 (11.0 on the
+whole GPU), but that was cuBLAS choosing kernels for 132 SMs. Captured with its GEMMs planned
+for its SM count, as main now captures restricted VLM graphs, it stays close to its SM share
+(docs/RESULTS.md, "Weight streaming per SM, and the action stage on a partition of its own",
+and "cuBLAS told the SM level").
 """
 from __future__ import annotations
 
