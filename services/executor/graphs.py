@@ -11,7 +11,9 @@ two waves on 128. On an H100, pi0's VLM at batch 2 took 12.9 ms on a 128-SM gree
 against 10.8 ms on all 132 SMs, and one GEMM kernel went from 1.7 to 3.1 ms. cuBLASLt's
 matmul descriptor carries the SM count to plan for (torch sets it from its SM carveout), and
 a graph keeps the kernels chosen at capture: captured that way, the same VLM took 10.9 ms on
-128 SMs and 12.5 instead of 14.8 on 96 (docs/RESULTS.md, "cuBLAS told the SM level").
+128 SMs and 12.5 instead of 14.8 on 96 (docs/RESULTS.md, "cuBLAS told the SM level"). Graphs
+captured on a partition of their own (``stream_sms``, the disjoint engine) are planned for it
+the same way.
 
 Memory: all VLM graphs share one pool and all action graphs another (pools are passed in,
 so co-located models share them too). Graphs of one pool never run concurrently (one VLM
@@ -39,17 +41,18 @@ WARMUP_RUNS = 2  # eager runs on the capture stream first: cuBLAS workspaces, la
 
 
 @contextlib.contextmanager
-def gemm_sm_target(level: Level, total_sms: int | None):
-    """GEMMs issued inside go through cuBLASLt planned for ``level`` SMs (nothing changes for
-    ``None``, the whole GPU). Process-wide torch settings, restored on exit: capture only."""
-    if level is None or total_sms is None or not hasattr(torch._C, "_set_sm_carveout_experimental"):
+def gemm_sm_target(sms: int | None, device: torch.device):
+    """GEMMs issued inside go through cuBLASLt planned for ``sms`` SMs (nothing changes for
+    ``None`` or the whole GPU). Process-wide torch settings, restored on exit: capture only."""
+    total = torch.cuda.get_device_properties(device).multi_processor_count if sms is not None else 0
+    if sms is None or sms >= total or not hasattr(torch._C, "_set_sm_carveout_experimental"):
         yield
         return
     blas = torch.backends.cuda.preferred_blas_library()
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*SM carveout.*")  # torch calls the knob experimental
-            torch._C._set_sm_carveout_experimental(total_sms - level)
+            torch._C._set_sm_carveout_experimental(total - sms)
         torch.backends.cuda.preferred_blas_library("cublaslt")
         yield
     finally:
@@ -74,12 +77,16 @@ class GraphStages(BufferedStages):
 
     def __init__(self, model: VLAModel, device: torch.device, batch_sizes: list[int], seed: int,
                  pools: GraphPools, green: GreenStreams | None, capture_stream: torch.cuda.Stream,
-                 action_stream: torch.cuda.Stream | None = None):
+                 action_stream: torch.cuda.Stream | None = None,
+                 stream_sms: tuple[int | None, int | None] = (None, None)):
         super().__init__(model, device, batch_sizes, seed)
         self.pools = pools
         self.green = green
         self.capture_stream = capture_stream  # unrestricted VLM captures (level None)
         self.action_stream = action_stream or capture_stream
+        # SMs of capture_stream and action_stream when they are partitions of their own (the
+        # disjoint engine); None: the whole GPU. Graphs captured there plan their GEMMs for it.
+        self.stream_sms = stream_sms
         self.vlm_graphs: dict[tuple[int, Level], torch.cuda.CUDAGraph] = {}
         self.action_graphs: dict[int, torch.cuda.CUDAGraph] = {}
         self.capture_s = 0.0
@@ -107,8 +114,9 @@ class GraphStages(BufferedStages):
         t0 = time.perf_counter()
         for b in self.batch_sizes:
             if b not in self.action_graphs:
-                self.action_graphs[b] = self._capture(lambda b=b: self._action_body(b), self.action_stream,
-                                                      self.pools.action)
+                with gemm_sm_target(self.stream_sms[1], self.device):
+                    self.action_graphs[b] = self._capture(lambda b=b: self._action_body(b), self.action_stream,
+                                                          self.pools.action)
         self.capture_s += time.perf_counter() - t0
 
     def capture_vlm(self, b: int, levels: set[Level]) -> None:
@@ -116,7 +124,7 @@ class GraphStages(BufferedStages):
         for level in sorted(levels, key=lambda lv: (lv is None, lv or 0)):
             if (b, level) not in self.vlm_graphs:
                 stream = self._stream(level)
-                with gemm_sm_target(level, self.green.total_sms if self.green is not None else None):
+                with gemm_sm_target(self.stream_sms[0] if level is None else level, self.device):
                     self.vlm_graphs[(b, level)] = self._capture(lambda: self._vlm_body(b), stream, self.pools.vlm)
         dt = time.perf_counter() - t0
         self.capture_s += dt

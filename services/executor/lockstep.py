@@ -377,7 +377,7 @@ class LockstepEngine(Engine):
         pools = GraphPools.create() if self._graphed() else None
         if self._graphed():
             self.stages = {name: GraphStages(m.model, self.device, self.batch_sizes, self.cfg.seed, pools, None,
-                                             self.runner.vlm_stream, self.runner.action_stream)
+                                             self.runner.vlm_stream, self.runner.action_stream, self._stream_sms())
                            for name, m in self.models.items()}
         else:
             self.stages = {name: BufferedStages(m.model, self.device, self.batch_sizes, self.cfg.seed)
@@ -444,6 +444,11 @@ class LockstepEngine(Engine):
                     st.capture_vlm(b, keep[b])
             torch.cuda.synchronize(self.device)
             self.prepare_s["capture"] = self.prepare_s.get("capture", 0.0) + time.perf_counter() - t1
+
+    def _stream_sms(self) -> tuple[int | None, int | None]:
+        """SMs of the runner's VLM and action streams when they are partitions of their own
+        (None: the whole GPU; green levels are handled per graph)."""
+        return None, None
 
     def _policy_from_config(self) -> SMPolicy:
         from services.executor import profiler

@@ -88,7 +88,25 @@ def test_disjoint_partition_restricts_both_streams(pi0):
     assert eng.runner.vlm_stream is part.vlm_stream and eng.runner.action_stream is part.action_stream
     st = eng.stages["pi0"]
     assert st.capture_stream is part.vlm_stream and st.action_stream is part.action_stream  # graphs captured there
+    assert st.stream_sms == (32, total - 32)
     assert all(r.error is None for r in results)
+    # Captured again with a spy: each stage's GEMMs are planned through cuBLASLt for its partition.
+    seen: dict[str, set] = {"vlm": set(), "action": set()}
+    vlm_body, action_body = st._vlm_body, st._action_body
+
+    def settings() -> tuple:
+        return torch.backends.cuda.preferred_blas_library(), torch._C._get_sm_carveout_experimental()
+
+    st._vlm_body = lambda b: (seen["vlm"].add(settings()), vlm_body(b))[1]
+    st._action_body = lambda b: (seen["action"].add(settings()), action_body(b))[1]
+    before = settings()
+    st.drop_vlm({})
+    st.action_graphs.clear()
+    st.capture_vlm(1, {None})
+    st.capture_action()
+    lt = torch._C._BlasBackend.Cublaslt
+    assert seen == {"vlm": {(lt, total - 32)}, "action": {(lt, 32)}}, seen
+    assert settings() == before
     times = matmul_ms({"full": torch.cuda.Stream(DEV), "vlm": part.vlm_stream, "action": part.action_stream})
     vlm = [r.vlm_ms for r in eng.telemetry.records() if r.vlm_batch == 2]
     print(f"\ndisjoint 32/{total - 32}: matmul full {times['full']:.2f} ms, VLM partition {times['vlm']:.2f} ms, "

@@ -6,7 +6,8 @@ the SM restriction varied.
   device's SMs rounded to a multiple of 8, 64 on an H100);
 - ``disjoint``: two non-overlapping green contexts, the VLM stage on N SMs and the action
   stage on the rest; VLM graphs are captured on the VLM partition and action graphs on the
-  action partition (a graph keeps the SM limit of the stream it was captured on). N is
+  action partition (a graph keeps the SM limit of the stream it was captured on), each with
+  its GEMMs planned for its partition's SMs (``graphs.gemm_sm_target``). N is
   ``disjoint_sms`` or, when that is 0, profiled (``profile_disjoint``) and cached.
 
 On the CPU all three run the lockstep loop with ``HostRunner`` (no SMs to restrict).
@@ -79,6 +80,9 @@ class DisjointEngine(LockstepEngine):
             r.vlm_stream, r.action_stream = self.partition.vlm_stream, self.partition.action_stream
         self._runner = r
 
+    def _stream_sms(self) -> tuple[int | None, int | None]:
+        return self.partition.vlm_sms, self.partition.action_sms
+
     def _prepare_cuda(self) -> None:
         torch.cuda.set_device(self.device)
         n = self.cfg.disjoint_sms
@@ -109,6 +113,7 @@ def _time_partition(part, stages: dict, runner, combos: list, sizes: list[int],
         st.vlm_graphs.clear()
         st.action_graphs.clear()
         st.capture_stream, st.action_stream = part.vlm_stream, part.action_stream
+        st.stream_sms = (part.vlm_sms, part.action_sms)
         st.capture_action()
         for b in sizes:
             st.capture_vlm(b, {None})
@@ -140,7 +145,8 @@ def profile_disjoint(models: dict, device: torch.device, cfg, repeats: int | Non
     path = _profile_path(cfg, gpu, archs)
     if path.exists():
         doc = json.loads(path.read_text())
-        if doc.get("archs") == archs and doc.get("max_batch") == cfg.max_batch:
+        # Profiles from before the partitions' GEMMs were planned for their SMs time other graphs.
+        if doc.get("archs") == archs and doc.get("max_batch") == cfg.max_batch and doc.get("gemm_plan") == "sm_target":
             log.info("disjoint partition from %s: %s SMs", path, doc["best_sms"])
             return doc
     t0 = time.perf_counter()
@@ -177,7 +183,7 @@ def profile_disjoint(models: dict, device: torch.device, cfg, repeats: int | Non
     best = min(times, key=times.get)
     doc = {"gpu": gpu, "sm_count": total, "torch": torch.__version__, "max_batch": cfg.max_batch, "archs": archs,
            "objective": "mean lockstep time over the (vlm, action) batch combinations", "repeats": repeats,
-           "best_sms": int(best), "mean_ms": times, "combo_ms": per_combo, "failed": failed,
+           "gemm_plan": "sm_target", "best_sms": int(best), "mean_ms": times, "combo_ms": per_combo, "failed": failed,
            "profile_s": time.perf_counter() - t0}
     del stages
     torch.cuda.synchronize(device)
