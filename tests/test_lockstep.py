@@ -314,6 +314,21 @@ def test_profiler_flow_and_table_round_trip(tmp_path):
     assert again.best_levels() == table.best_levels() and again.profile_s > 0
 
 
+def test_table_timed_with_other_captures_is_not_reused(tmp_path):
+    from services.executor.profiler import GEMM_PLAN, _matches
+
+    current = SMTable("H100", 132, torch.__version__, 2, ["pi0"], gemm_plan=GEMM_PLAN)
+    current.save(tmp_path / "now.json")
+    assert _matches(SMTable.load(tmp_path / "now.json"), "H100", torch.__version__)
+    # A file written before tables recorded their GEMM plan loads with the default, and is stale.
+    doc = json.loads((tmp_path / "now.json").read_text())
+    del doc["gemm_plan"]
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    old = SMTable.load(tmp_path / "old.json")
+    assert old.gemm_plan == "" and not _matches(old, "H100", torch.__version__)
+    assert not _matches(current, "A100", torch.__version__)
+
+
 def test_helpers_and_config_validation():
     assert batch_sizes(1) == [1] and batch_sizes(2) == [1, 2] and batch_sizes(8) == [1, 2, 4, 8]
     assert sm_levels(132) == list(range(8, 132, 8)) + [None] and sm_levels(132)[-2] == 128

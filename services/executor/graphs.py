@@ -7,11 +7,11 @@ VLM stage to a level therefore means capturing it on that level's green-context 
 
 Why restricted VLM graphs are captured through cuBLASLt with an SM-count target: cuBLAS
 picks a GEMM's kernel for the whole GPU, and a tile grid sized for one wave on 132 SMs takes
-two waves on 128. On an H100, pi0's VLM at batch 2 took 12.9 ms on a 128-SM green context
-against 10.8 ms on all 132 SMs, and one GEMM kernel went from 1.7 to 3.1 ms. cuBLASLt's
+two waves on 128. On an H100, pi0's VLM at batch 2 took 12.8 ms on a 128-SM green context
+against 10.9 ms on all 132 SMs, and one GEMM kernel went from 1.7 to 3.1 ms. cuBLASLt's
 matmul descriptor carries the SM count to plan for (torch sets it from its SM carveout), and
 a graph keeps the kernels chosen at capture: captured that way, the same VLM took 10.9 ms on
-128 SMs and 12.5 instead of 14.8 on 96 (docs/RESULTS.md, "cuBLAS told the SM level"). Graphs
+128 SMs and 12.4 instead of 14.8 on 96 (docs/RESULTS.md, "cuBLAS told the SM level"). Graphs
 captured on a partition of their own (``stream_sms``, the disjoint engine) are planned for it
 the same way.
 
@@ -43,12 +43,16 @@ WARMUP_RUNS = 2  # eager runs on the capture stream first: cuBLAS workspaces, la
 @contextlib.contextmanager
 def gemm_sm_target(sms: int | None, device: torch.device):
     """GEMMs issued inside go through cuBLASLt planned for ``sms`` SMs (nothing changes for
-    ``None`` or the whole GPU). Process-wide torch settings, restored on exit: capture only."""
+    ``None`` or the whole GPU).
+
+    Both settings are process-wide in torch (every thread and device), so this is for graph
+    capture at start-up, while no other thread issues GEMMs; they are restored on exit."""
     total = torch.cuda.get_device_properties(device).multi_processor_count if sms is not None else 0
     if sms is None or sms >= total or not hasattr(torch._C, "_set_sm_carveout_experimental"):
         yield
         return
     blas = torch.backends.cuda.preferred_blas_library()
+    carveout = torch._C._get_sm_carveout_experimental()
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*SM carveout.*")  # torch calls the knob experimental
@@ -56,7 +60,7 @@ def gemm_sm_target(sms: int | None, device: torch.device):
         torch.backends.cuda.preferred_blas_library("cublaslt")
         yield
     finally:
-        torch._C._set_sm_carveout_experimental(None)
+        torch._C._set_sm_carveout_experimental(carveout)
         torch.backends.cuda.preferred_blas_library(blas)
 
 

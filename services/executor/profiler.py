@@ -54,6 +54,11 @@ class ProfileEntry:
         return (self.vlm, self.vlm_batch, self.action, self.action_batch)
 
 
+# How restricted VLM graphs plan their GEMMs (graphs.gemm_sm_target). A table timed with other
+# captures picks levels for other kernels: it is profiled again, not reused.
+GEMM_PLAN = "sm_target"
+
+
 @dataclass
 class SMTable:
     gpu: str
@@ -64,6 +69,7 @@ class SMTable:
     entries: list[ProfileEntry] = field(default_factory=list)
     profile_s: float = 0.0  # wall time of the profiling runs that produced the entries
     repeats: int = 0
+    gemm_plan: str = ""  # GEMM_PLAN of the captures it was timed with; "" before there was one
 
     def best_levels(self) -> dict[Combo, Level]:
         return {e.combo: e.best_sms for e in self.entries}
@@ -104,7 +110,7 @@ def table_path(profile_dir: str | Path, gpu: str, torch_version: str, max_batch:
 
 
 def _matches(table: SMTable, gpu: str, torch_version: str) -> bool:
-    return table.gpu == gpu and table.torch == torch_version
+    return table.gpu == gpu and table.torch == torch_version and table.gemm_plan == GEMM_PLAN
 
 
 def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_table: str | None,
@@ -113,7 +119,7 @@ def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_tabl
     key, or a new one seeded with the entries of any cached table from the same GPU and torch."""
     gpu, version = torch.cuda.get_device_name(device), torch.__version__
     fresh = SMTable(gpu, torch.cuda.get_device_properties(device).multi_processor_count, version, max_batch,
-                    sorted(archs))
+                    sorted(archs), gemm_plan=GEMM_PLAN)
     batch_sizes = [1 << i for i in range(max_batch.bit_length())]
     wanted = combos_for(sorted(archs), batch_sizes)
     if sm_table:
@@ -122,13 +128,17 @@ def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_tabl
             table = SMTable.load(path)
             if _matches(table, gpu, version):
                 return path, table
-            log.warning("%s was profiled on %s / torch %s, not %s / torch %s: profiling anew into %s",
-                        path, table.gpu, table.torch, gpu, version, profile_dir)
+            log.warning("%s was profiled on %s / torch %s / GEMM plan %r, not %s / torch %s / %r: "
+                        "profiling anew into %s", path, table.gpu, table.torch, table.gemm_plan, gpu, version,
+                        GEMM_PLAN, profile_dir)
         else:
             return path, fresh
     path = table_path(profile_dir, gpu, version, max_batch, archs)
     if path.exists():
-        return path, SMTable.load(path)
+        cached = SMTable.load(path)
+        if _matches(cached, gpu, version):
+            return path, cached
+        log.warning("%s was timed with other VLM captures (GEMM plan %r): profiling it again", path, cached.gemm_plan)
     for other in sorted(Path(profile_dir).glob("sm-table_*.json")):
         try:
             table = SMTable.load(other)
