@@ -11,7 +11,7 @@ from shared.models.registry import _ARCHS, build_meta
 
 ARCHS = ["pi0", "smolvla", "groot_n15", "xr0"]
 
-# Per-stage parameter counts from ../shared/docs/models.md.
+# Per-stage parameter counts of the published models (VLM, action stage).
 SPEC = {"pi0": (2.92e9, 315e6), "smolvla": (303e6, 100e6), "groot_n15": (1.33e9, 1.07e9), "xr0": (4.44e9, 0.28e9)}
 
 

@@ -11,7 +11,7 @@ engine built by a factory: it prepares it once (graph capture can take minutes o
 and runs it for one epoch at a time; ``run`` returning calls ``finish``, which answers
 everything still queued, so nothing leaks from one epoch into the next.
 
-Method (../../shared/docs/evaluation.md): each robot starts at a random offset in
+Method (the paper's evaluation, section 6; docs/capacity.md): each robot starts at a random offset in
 [0, 1/f) and sends every 1/f s whether or not its replies came; E epochs with fresh
 offsets, seeded; SLO attainment = share of sent requests whose end-to-end latency is
 within the model's deadline; a request with no reply or an error reply is a miss; the
