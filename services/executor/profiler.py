@@ -54,8 +54,9 @@ class ProfileEntry:
         return (self.vlm, self.vlm_batch, self.action, self.action_batch)
 
 
-# How restricted VLM graphs plan their GEMMs (graphs.gemm_sm_target). A table timed with other
-# captures picks levels for other kernels: it is profiled again, not reused.
+# How restricted graphs plan their GEMMs (graphs.gemm_sm_target). A table (or the disjoint
+# engine's partition profile) timed with other captures chose for other kernels: it is
+# profiled again, not reused.
 GEMM_PLAN = "sm_target"
 
 

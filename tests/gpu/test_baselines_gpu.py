@@ -19,7 +19,7 @@ from services.executor.engine import ServedModel, make_engine  # noqa: E402
 from services.executor.scheduler import Request, Result  # noqa: E402
 from shared.config import EngineConfig  # noqa: E402
 from shared.models import build_model  # noqa: E402
-from tests.gpu.zoo import DEV, matmul_ms, requests, worst_error_vs_eager  # noqa: E402
+from tests.gpu.zoo import DEV, blas_settings, matmul_ms, requests, worst_error_vs_eager  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 TABLE = os.environ.get("ROBION_SM_TABLE", os.path.join(ROOT, "bench", "results", "sm_table_h100_zoo.json"))
 KINDS = {"monolithic": {}, "robion": {"sm_table": TABLE}, "disagg": {}, "static": {},
@@ -94,19 +94,16 @@ def test_disjoint_partition_restricts_both_streams(pi0):
     seen: dict[str, set] = {"vlm": set(), "action": set()}
     vlm_body, action_body = st._vlm_body, st._action_body
 
-    def settings() -> tuple:
-        return torch.backends.cuda.preferred_blas_library(), torch._C._get_sm_carveout_experimental()
-
-    st._vlm_body = lambda b: (seen["vlm"].add(settings()), vlm_body(b))[1]
-    st._action_body = lambda b: (seen["action"].add(settings()), action_body(b))[1]
-    before = settings()
+    st._vlm_body = lambda b: (seen["vlm"].add(blas_settings()), vlm_body(b))[1]
+    st._action_body = lambda b: (seen["action"].add(blas_settings()), action_body(b))[1]
+    before = blas_settings()
     st.drop_vlm({})
     st.action_graphs.clear()
     st.capture_vlm(1, {None})
     st.capture_action()
     lt = torch._C._BlasBackend.Cublaslt
     assert seen == {"vlm": {(lt, total - 32)}, "action": {(lt, 32)}}, seen
-    assert settings() == before
+    assert blas_settings() == before
     times = matmul_ms({"full": torch.cuda.Stream(DEV), "vlm": part.vlm_stream, "action": part.action_stream})
     vlm = [r.vlm_ms for r in eng.telemetry.records() if r.vlm_batch == 2]
     print(f"\ndisjoint 32/{total - 32}: matmul full {times['full']:.2f} ms, VLM partition {times['vlm']:.2f} ms, "

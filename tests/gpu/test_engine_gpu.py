@@ -21,7 +21,7 @@ from services.executor.scheduler import Request, Result  # noqa: E402
 from services.executor.sm import GreenStreams, StaticLevel, TableLevel, Unrestricted  # noqa: E402
 from shared.config import EngineConfig  # noqa: E402
 from shared.models import build_model  # noqa: E402
-from tests.gpu.zoo import DEV, eager, matmul_ms, requests, worst_error_vs_eager  # noqa: E402
+from tests.gpu.zoo import DEV, blas_settings, eager, matmul_ms, requests, worst_error_vs_eager  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -167,10 +167,6 @@ def test_lockstep_results_equal_eager_single_and_co_located(policy):
         assert set(summary["sm_levels"]) - {"None"}, "some lockstep should have run restricted"
 
 
-def _blas_settings() -> tuple:
-    return torch.backends.cuda.preferred_blas_library(), torch._C._get_sm_carveout_experimental()
-
-
 def test_restricted_vlm_capture_plans_gemms_for_its_level_and_restores_settings():
     """A VLM graph captured at a level is planned through cuBLASLt for that many SMs; an
     unrestricted one is not; torch's process-wide settings come back after each capture,
@@ -178,12 +174,12 @@ def test_restricted_vlm_capture_plans_gemms_for_its_level_and_restores_settings(
     h = build_model("heavytoy", "full", seed=7, device=DEV)
     eng, _ = _engine({"h": h}, EngineConfig(kind="robion", max_batch=2), StaticLevel(64))
     st = eng.stages["h"]
-    before = _blas_settings()
+    before = blas_settings()
     seen: list[tuple] = []
     body = st._vlm_body
 
     def spying(b):
-        seen.append(_blas_settings())
+        seen.append(blas_settings())
         return body(b)
 
     st._vlm_body = spying
@@ -193,7 +189,7 @@ def test_restricted_vlm_capture_plans_gemms_for_its_level_and_restores_settings(
     runs = len(seen) // 2
     assert set(seen[:runs]) == {(torch._C._BlasBackend.Cublaslt, total - 64)}
     assert set(seen[runs:]) == {before}
-    assert _blas_settings() == before
+    assert blas_settings() == before
 
     def failing(b):
         raise RuntimeError("capture failed")
@@ -201,7 +197,7 @@ def test_restricted_vlm_capture_plans_gemms_for_its_level_and_restores_settings(
     st._vlm_body = failing
     with pytest.raises(RuntimeError, match="capture failed"):
         st.capture_vlm(2, {64})
-    assert _blas_settings() == before
+    assert blas_settings() == before
 
 
 def test_each_model_alone_equals_eager():

@@ -63,3 +63,8 @@ def matmul_ms(streams: Mapping[str, torch.cuda.Stream]) -> dict[str, float]:
         end.synchronize()
         times[name] = start.elapsed_time(end) / 5
     return times
+
+
+def blas_settings() -> tuple:
+    """torch's process-wide GEMM settings that ``graphs.gemm_sm_target`` changes during a capture."""
+    return torch.backends.cuda.preferred_blas_library(), torch._C._get_sm_carveout_experimental()

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from services.executor.lockstep import CudaRunner, LockstepEngine, batch_sizes
-from services.executor.profiler import time_lockstep
+from services.executor.profiler import GEMM_PLAN, time_lockstep
 from services.executor.sm import SM_GRANULARITY, StaticLevel, Unrestricted, sm_count, split_disjoint
 
 log = logging.getLogger(__name__)
@@ -146,7 +146,7 @@ def profile_disjoint(models: dict, device: torch.device, cfg, repeats: int | Non
     if path.exists():
         doc = json.loads(path.read_text())
         # Profiles from before the partitions' GEMMs were planned for their SMs time other graphs.
-        if doc.get("archs") == archs and doc.get("max_batch") == cfg.max_batch and doc.get("gemm_plan") == "sm_target":
+        if doc.get("archs") == archs and doc.get("max_batch") == cfg.max_batch and doc.get("gemm_plan") == GEMM_PLAN:
             log.info("disjoint partition from %s: %s SMs", path, doc["best_sms"])
             return doc
     t0 = time.perf_counter()
@@ -183,7 +183,7 @@ def profile_disjoint(models: dict, device: torch.device, cfg, repeats: int | Non
     best = min(times, key=times.get)
     doc = {"gpu": gpu, "sm_count": total, "torch": torch.__version__, "max_batch": cfg.max_batch, "archs": archs,
            "objective": "mean lockstep time over the (vlm, action) batch combinations", "repeats": repeats,
-           "gemm_plan": "sm_target", "best_sms": int(best), "mean_ms": times, "combo_ms": per_combo, "failed": failed,
+           "gemm_plan": GEMM_PLAN, "best_sms": int(best), "mean_ms": times, "combo_ms": per_combo, "failed": failed,
            "profile_s": time.perf_counter() - t0}
     del stages
     torch.cuda.synchronize(device)
