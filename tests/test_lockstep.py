@@ -10,7 +10,7 @@ import torch
 
 from services.executor.engine import ServedModel, make_engine
 from services.executor.lockstep import HostRunner, LockstepEngine, RobionEngine, batch_sizes
-from services.executor.profiler import SMTable, combos_for, missing_combos, profile
+from services.executor.profiler import SMTable, combos_for, format_table, missing_combos, profile
 from services.executor.scheduler import Request, Result
 from services.executor.sm import StaticLevel, TableLevel, sm_levels
 from services.executor.stages import BufferedStages, profile_key
@@ -309,9 +309,17 @@ def test_profiler_flow_and_table_round_trip(tmp_path):
     table = profile({st.arch: st}, HostRunner(), [1, 2], levels, combos, table, repeats=2, warmup=1, progress=False)
     assert table.covers(combos) and missing_combos(table, [st.arch], [1, 2]) == []
     assert all(set(e.times_ms) == {"64", "none"} for e in table.entries)
+    table.action_plans = {f"{st.arch}|2": 76, f"{st.arch}|1": None}
     table.save(tmp_path / "t.json")
     again = SMTable.load(tmp_path / "t.json")
     assert again.best_levels() == table.best_levels() and again.profile_s > 0
+    assert again.action_plans == table.action_plans
+    assert f"{st.arch}|2 76" in format_table(again) and f"{st.arch}|1" not in format_table(again)
+    # A table written before action graphs were planned has none: each action graph as torch plans it.
+    doc = json.loads((tmp_path / "t.json").read_text())
+    del doc["action_plans"]
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    assert SMTable.load(tmp_path / "old.json").action_plans == {}
 
 
 def test_table_timed_with_other_captures_is_not_reused(tmp_path):

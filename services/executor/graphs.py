@@ -13,7 +13,8 @@ matmul descriptor carries the SM count to plan for (torch sets it from its SM ca
 a graph keeps the kernels chosen at capture: captured that way, the same VLM took 10.9 ms on
 128 SMs and 12.4 instead of 14.8 on 96 (docs/RESULTS.md, "cuBLAS told the SM level"). Graphs
 captured on a partition of their own (``stream_sms``, the disjoint engine) are planned for it
-the same way.
+the same way, and so is an action graph when the SM table found it faster planned for the SMs
+its usual lockstep leaves free (``action_plans``, chosen by ``profiler.plan_actions``).
 
 Memory: all VLM graphs share one pool and all action graphs another (pools are passed in,
 so co-located models share them too). Graphs of one pool never run concurrently (one VLM
@@ -91,6 +92,9 @@ class GraphStages(BufferedStages):
         # SMs of capture_stream and action_stream when they are partitions of their own (the
         # disjoint engine); None: the whole GPU. Graphs captured there plan their GEMMs for it.
         self.stream_sms = stream_sms
+        # Batch -> SMs its action graph plans its GEMMs for, when the SM table chose one
+        # (``profiler.plan_actions``); otherwise the action stream's (``stream_sms[1]``).
+        self.action_plans: dict[int, int | None] = {}
         self.vlm_graphs: dict[tuple[int, Level], torch.cuda.CUDAGraph] = {}
         self.action_graphs: dict[int, torch.cuda.CUDAGraph] = {}
         self.capture_s = 0.0
@@ -118,10 +122,20 @@ class GraphStages(BufferedStages):
         t0 = time.perf_counter()
         for b in self.batch_sizes:
             if b not in self.action_graphs:
-                with gemm_sm_target(self.stream_sms[1], self.device):
+                plan = self.action_plans.get(b) or self.stream_sms[1]
+                with gemm_sm_target(plan, self.device):
                     self.action_graphs[b] = self._capture(lambda b=b: self._action_body(b), self.action_stream,
                                                           self.pools.action)
         self.capture_s += time.perf_counter() - t0
+
+    def replan_action(self, b: int, sms: int | None) -> None:
+        """Capture batch ``b``'s action graph again, its GEMMs planned for ``sms`` SMs (None:
+        the action stream's own)."""
+        if self.action_plans.get(b) == sms and b in self.action_graphs:
+            return
+        self.action_plans[b] = sms
+        self.action_graphs.pop(b, None)
+        self.capture_action()
 
     def capture_vlm(self, b: int, levels: set[Level]) -> None:
         t0 = time.perf_counter()

@@ -420,6 +420,8 @@ class LockstepEngine(Engine):
         if self._graphed():
             t1 = time.perf_counter()
             for st in self.stages.values():
+                if isinstance(policy, _PendingTable):  # action graphs as the table timed them
+                    st.action_plans = self._action_plans(policy.table, st.arch)
                 st.capture_action()
             self.prepare_s["capture"] = time.perf_counter() - t1
 
@@ -427,10 +429,15 @@ class LockstepEngine(Engine):
             if missing:
                 t1 = time.perf_counter()
                 table = profiler.profile(by_arch, self.runner, self.batch_sizes, sm_levels(sm_count(self.device)),
-                                         combos=missing, table=table, repeats=self.cfg.profile_repeats)
+                                         combos=missing, table=table, repeats=self.cfg.profile_repeats,
+                                         total_sms=sm_count(self.device))
                 table.save(policy.path)
                 self.prepare_s["profile"] = time.perf_counter() - t1
                 log.info("SM table profiled in %.1f s, saved to %s", table.profile_s, policy.path)
+                # Profiling may have planned an action graph anew (on one model per architecture).
+                for st in self.stages.values():
+                    for b, sms in self._action_plans(table, st.arch).items():
+                        st.replan_action(b, sms)
             self.table = table
             policy = TableLevel(table.best_levels())
         self.sm_policy = policy
@@ -444,6 +451,11 @@ class LockstepEngine(Engine):
                     st.capture_vlm(b, keep[b])
             torch.cuda.synchronize(self.device)
             self.prepare_s["capture"] = self.prepare_s.get("capture", 0.0) + time.perf_counter() - t1
+
+    def _action_plans(self, table, arch: str) -> dict[int, int | None]:
+        from services.executor.profiler import action_key
+
+        return {b: table.action_plans.get(action_key(arch, b)) for b in self.batch_sizes}
 
     def _stream_sms(self) -> tuple[int | None, int | None]:
         """SMs of the runner's VLM and action streams when they are partitions of their own

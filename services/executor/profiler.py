@@ -71,6 +71,9 @@ class SMTable:
     profile_s: float = 0.0  # wall time of the profiling runs that produced the entries
     repeats: int = 0
     gemm_plan: str = ""  # GEMM_PLAN of the captures it was timed with; "" before there was one
+    # "arch|batch" -> SMs that action graph's GEMMs are planned for (None: tried, not kept);
+    # the entries with that action were timed with it. A key is absent until it was tried.
+    action_plans: dict[str, int | None] = field(default_factory=dict)
 
     def best_levels(self) -> dict[Combo, Level]:
         return {e.combo: e.best_sms for e in self.entries}
@@ -171,11 +174,14 @@ def time_lockstep(runner, vst, vb: int, ast, ab: int, level: Level, repeats: int
 
 
 def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], combos: list[Combo],
-            table: SMTable, repeats: int = 5, warmup: int = 2, progress: bool = True) -> SMTable:
+            table: SMTable, repeats: int = 5, warmup: int = 2, progress: bool = True,
+            total_sms: int | None = None) -> SMTable:
     """Time every combo at every level with the engine's runner; add the entries to ``table``.
 
     ``by_arch`` maps an architecture key to one ``GraphStages`` of it (graphs and buffers
-    allocated); VLM graphs for all ``levels`` are captured here as they are needed.
+    allocated); VLM graphs for all ``levels`` are captured here as they are needed. With
+    ``total_sms`` (the GPU's SM count), action graphs are then tried planned for fewer SMs
+    (``plan_actions``).
     """
     from tqdm import tqdm
 
@@ -200,12 +206,82 @@ def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], 
                 table.entries = [e for e in table.entries if e.combo != entry.combo]
             table.entries.append(entry)
             bar.set_postfix_str(f"{va}x{vb}|{aa}x{ab} best {level_name(best)}")
+    if total_sms:
+        plan_actions(by_arch, runner, levels, combos, table, total_sms, repeats, warmup, bar)
     bar.close()
     table.archs = sorted(set(table.archs) | set(by_arch))
     table.max_batch = max([table.max_batch, *batch_sizes])  # a table extended for a larger max_batch says so
     table.profile_s += time.perf_counter() - t0
     table.repeats = repeats
     return table
+
+
+PLAN_MIN_GAIN = 0.01  # a planned action graph is kept only when its lockstep is this much faster
+
+
+def action_key(arch: str, batch: int) -> str:
+    return f"{arch}|{batch}"
+
+
+def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo], table: SMTable, total_sms: int,
+                 repeats: int = 5, warmup: int = 2, bar=None) -> None:
+    """Try each action graph planned for the SMs its usual lockstep leaves free; keep it where faster.
+
+    An action graph plans its GEMMs for the whole GPU, but beside a VLM restricted to L SMs
+    it mostly gets the other ``total_sms - L``. For each (action arch, batch) whose same-model
+    lockstep (``(a, b, a, b)``, the common one when a model serves alone) is restricted, its
+    action graph is captured again planned for ``total_sms - L`` and that lockstep is timed
+    again at every level. If it is at least ``PLAN_MIN_GAIN`` faster, the plan is kept and
+    every profiled combination with that action is timed again with it; otherwise the
+    original graph is restored. One graph per (arch, batch) serves every VLM partner: the
+    engine issues the action stage ahead, before it knows which VLM will run beside it.
+    Only (arch, batch) pairs whose every table entry is in ``combos`` are tried (the others
+    would keep entries timed with another graph); the result goes to ``table.action_plans``.
+    """
+    by_action: dict[tuple[str, int], list[Combo]] = {}
+    for c in combos:
+        by_action.setdefault((c[2], c[3]), []).append(c)
+    entries = {e.combo: e for e in table.entries}
+    for (aa, ab), own in sorted(by_action.items()):
+        key = action_key(aa, ab)
+        diag = entries.get((aa, ab, aa, ab))
+        ast = by_arch[aa]
+        if key in table.action_plans or diag is None or diag.combo not in own or not hasattr(ast, "replan_action"):
+            continue
+        if any(e.combo[2:] == (aa, ab) and e.combo not in own for e in table.entries):
+            continue
+        if diag.best_sms is None:
+            table.action_plans[key] = None
+            continue
+        plan = total_sms - diag.best_sms
+        ast.replan_action(ab, plan)
+
+        def retime(combo: Combo) -> ProfileEntry:
+            va, vb = combo[:2]
+            times = {}
+            for level in levels:
+                times[level_name(level)] = time_lockstep(runner, by_arch[va], vb, ast, ab, level, repeats, warmup)
+                if bar is not None:
+                    bar.update()
+            best = min(levels, key=lambda lv: times[level_name(lv)])
+            return ProfileEntry(*combo, best, times[level_name(best)], times["none"], times)
+
+        if bar is not None:
+            bar.total += len(levels) * len(own)
+            bar.set_postfix_str(f"action {aa}x{ab} planned for {plan} SMs")
+        planned = {diag.combo: retime(diag.combo)}
+        kept = planned[diag.combo].best_ms < diag.best_ms * (1 - PLAN_MIN_GAIN)
+        log.info("%s x%d action planned for %d SMs: same-model lockstep %.3f ms against %.3f: %s", aa, ab, plan,
+                 planned[diag.combo].best_ms, diag.best_ms, "kept" if kept else "not kept")
+        if kept:
+            planned.update({c: retime(c) for c in own if c != diag.combo})
+            table.entries = [planned.get(e.combo, e) for e in table.entries]
+            table.action_plans[key] = plan
+        else:
+            if bar is not None:
+                bar.total -= len(levels) * (len(own) - 1)
+            ast.replan_action(ab, None)
+            table.action_plans[key] = None
 
 
 def format_table(table: SMTable) -> str:
@@ -215,6 +291,9 @@ def format_table(table: SMTable) -> str:
     for e in sorted(table.entries, key=lambda e: e.combo):
         lines.append(f"{e.vlm:>18} {e.vlm_batch:>2} {e.action:>18} {e.action_batch:>2} {level_name(e.best_sms):>8} "
                      f"{e.best_ms:>8.3f} {e.unrestricted_ms:>10.3f} {e.unrestricted_ms / e.best_ms:>5.2f}x")
+    planned = {k: v for k, v in sorted(table.action_plans.items()) if v is not None}
+    if planned:
+        lines.append("action graphs planned for fewer SMs: " + ", ".join(f"{k} {v}" for k, v in planned.items()))
     return "\n".join(lines)
 
 
@@ -254,4 +333,5 @@ if __name__ == "__main__":
     main()
 
 
-__all__ = ["SMTable", "ProfileEntry", "locate_table", "missing_combos", "profile", "parse_level", "time_lockstep"]
+__all__ = ["SMTable", "ProfileEntry", "locate_table", "missing_combos", "plan_actions", "profile", "parse_level",
+           "time_lockstep"]

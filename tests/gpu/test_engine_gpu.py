@@ -200,6 +200,64 @@ def test_restricted_vlm_capture_plans_gemms_for_its_level_and_restores_settings(
     assert blas_settings() == before
 
 
+def test_table_action_plan_is_captured_and_serves_equal_to_eager(tmp_path):
+    """An SM table that planned an action graph for fewer SMs makes the engine capture that
+    graph through cuBLASLt planned for them (and the other batch's as torch calls it)."""
+    from services.executor.profiler import GEMM_PLAN, ProfileEntry, SMTable
+
+    h = build_model("heavytoy", "full", seed=9, device=DEV)
+    arch = "heavytoy:full"
+    table = SMTable(torch.cuda.get_device_name(DEV), torch.cuda.get_device_properties(DEV).multi_processor_count,
+                    torch.__version__, 2, [arch], gemm_plan=GEMM_PLAN,
+                    action_plans={f"{arch}|2": 76, f"{arch}|1": None})
+    table.entries = [ProfileEntry(arch, vb, arch, ab, 56, 1.0, 1.0, {"56": 1.0, "none": 1.0})
+                     for vb in (1, 2) for ab in (1, 2)]
+    table.save(tmp_path / "table.json")
+    eng, results = _engine({"h": h}, EngineConfig(kind="robion", max_batch=2, sm_table=str(tmp_path / "table.json")))
+    st = eng.stages["h"]
+    assert st.action_plans == {1: None, 2: 76}
+    before = blas_settings()
+    seen: dict[int, set] = {}
+    body = st._action_body
+
+    def spying(b):
+        seen.setdefault(b, set()).add(blas_settings())
+        return body(b)
+
+    st._action_body = spying
+    st.action_graphs.clear()
+    st.capture_action()
+    total = torch.cuda.get_device_properties(DEV).multi_processor_count
+    assert seen == {2: {(torch._C._BlasBackend.Cublaslt, total - 76)}, 1: {before}}
+    assert blas_settings() == before
+    st._action_body = body
+    reqs = requests(h, "h", 16, 8)
+    _serve(eng, reqs, results)
+    _check({"h": h}, results, len(reqs))
+
+
+def test_profiling_tries_planned_action_graphs_and_keeps_stages_consistent(tmp_path):
+    """Profiling a table tries each action graph planned for the SMs its same-model lockstep
+    leaves free; whatever it keeps, every stage's action graph is the one the table was timed
+    with, and serving stays equal to eager."""
+    h1 = build_model("heavytoy", "full", seed=11, device=DEV)
+    h2 = build_model("heavytoy", "full", seed=12, device=DEV)  # same architecture: one profile
+    cfg = EngineConfig(kind="robion", max_batch=2, sm_table=str(tmp_path / "profiled.json"), profile_repeats=3)
+    eng, results = _engine({"h1": h1, "h2": h2}, cfg)
+    table = eng.table
+    arch = "heavytoy:full"
+    assert set(table.action_plans) == {f"{arch}|1", f"{arch}|2"}  # a fresh table tries every action graph
+    entries = {e.combo: e for e in table.entries}
+    for b in (1, 2):
+        for name in ("h1", "h2"):
+            assert eng.stages[name].action_plans.get(b) == table.action_plans[f"{arch}|{b}"]
+    print(f"action plans {table.action_plans}; same-model best levels "
+          f"{[(b, entries[(arch, b, arch, b)].best_sms) for b in (1, 2)]}")
+    reqs = requests(h1, "h1", 10, 9) + requests(h2, "h2", 10, 10)
+    _serve(eng, reqs, results)
+    _check({"h1": h1, "h2": h2}, results, len(reqs))
+
+
 def test_each_model_alone_equals_eager():
     h = build_model("heavytoy", "full", seed=5, device=DEV)
     eng, results = _engine({"h": h}, EngineConfig(kind="robion", max_batch=2), StaticLevel(88))
