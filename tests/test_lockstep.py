@@ -310,16 +310,19 @@ def test_profiler_flow_and_table_round_trip(tmp_path):
     assert table.covers(combos) and missing_combos(table, [st.arch], [1, 2]) == []
     assert all(set(e.times_ms) == {"64", "none"} for e in table.entries)
     table.action_plans = {f"{st.arch}|2": 76, f"{st.arch}|1": None}
+    table.action_confine = {f"{st.arch}|1": 96}
     table.save(tmp_path / "t.json")
     again = SMTable.load(tmp_path / "t.json")
     assert again.best_levels() == table.best_levels() and again.profile_s > 0
-    assert again.action_plans == table.action_plans
-    assert f"{st.arch}|2 76" in format_table(again) and f"{st.arch}|1" not in format_table(again)
+    assert again.action_plans == table.action_plans and again.action_confine == table.action_confine
+    text = format_table(again)
+    assert f"planned for fewer SMs: {st.arch}|2 76" in text and f"confined beside a VLM level: {st.arch}|1 96" in text
     # A table written before action graphs were planned has none: each action graph as torch plans it.
     doc = json.loads((tmp_path / "t.json").read_text())
-    del doc["action_plans"]
+    del doc["action_plans"], doc["action_confine"]
     (tmp_path / "old.json").write_text(json.dumps(doc))
-    assert SMTable.load(tmp_path / "old.json").action_plans == {}
+    old = SMTable.load(tmp_path / "old.json")
+    assert old.action_plans == {} and old.action_confine == {}
 
 
 def test_table_timed_with_other_captures_is_not_reused(tmp_path):

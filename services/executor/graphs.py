@@ -14,7 +14,8 @@ a graph keeps the kernels chosen at capture: captured that way, the same VLM too
 128 SMs and 12.4 instead of 14.8 on 96 (docs/RESULTS.md, "cuBLAS told the SM level"). Graphs
 captured on a partition of their own (``stream_sms``, the disjoint engine) are planned for it
 the same way, and so is an action graph when the SM table found it faster planned for the SMs
-its usual lockstep leaves free (``action_plans``, chosen by ``profiler.plan_actions``).
+its usual lockstep leaves free (``action_plans``), or confined to those SMs
+(``action_confine``); ``profiler.plan_actions`` chooses.
 
 Memory: all VLM graphs share one pool and all action graphs another (pools are passed in,
 so co-located models share them too). Graphs of one pool never run concurrently (one VLM
@@ -95,6 +96,9 @@ class GraphStages(BufferedStages):
         # Batch -> SMs its action graph plans its GEMMs for, when the SM table chose one
         # (``profiler.plan_actions``); otherwise the action stream's (``stream_sms[1]``).
         self.action_plans: dict[int, int | None] = {}
+        # Batch -> VLM level whose free SMs (``GreenStreams.complement``) its action graph is
+        # confined to, when the SM table chose that; otherwise the action stream's SMs.
+        self.action_confine: dict[int, int | None] = {}
         self.vlm_graphs: dict[tuple[int, Level], torch.cuda.CUDAGraph] = {}
         self.action_graphs: dict[int, torch.cuda.CUDAGraph] = {}
         self.capture_s = 0.0
@@ -122,18 +126,26 @@ class GraphStages(BufferedStages):
         t0 = time.perf_counter()
         for b in self.batch_sizes:
             if b not in self.action_graphs:
-                plan = self.action_plans.get(b) or self.stream_sms[1]
+                stream, plan = self.action_stream, self.action_plans.get(b) or self.stream_sms[1]
+                confine = self.action_confine.get(b)
+                if confine is not None:
+                    if self.green is None:
+                        raise RuntimeError("confining the action stage needs green contexts, which this engine did "
+                                           "not create")
+                    stream, plan = self.green.complement(confine)
                 with gemm_sm_target(plan, self.device):
-                    self.action_graphs[b] = self._capture(lambda b=b: self._action_body(b), self.action_stream,
+                    self.action_graphs[b] = self._capture(lambda b=b: self._action_body(b), stream,
                                                           self.pools.action)
         self.capture_s += time.perf_counter() - t0
 
-    def replan_action(self, b: int, sms: int | None) -> None:
-        """Capture batch ``b``'s action graph again, its GEMMs planned for ``sms`` SMs (None:
-        the action stream's own)."""
-        if self.action_plans.get(b) == sms and b in self.action_graphs:
+    def replan_action(self, b: int, sms: int | None, confine: int | None = None) -> None:
+        """Capture batch ``b``'s action graph again: its GEMMs planned for ``sms`` SMs (None: the
+        action stream's own) or, with ``confine``, on the SMs a VLM at that level leaves free."""
+        if confine is not None:
+            sms = None  # planned for the complement's own SM count
+        if (self.action_plans.get(b), self.action_confine.get(b)) == (sms, confine) and b in self.action_graphs:
             return
-        self.action_plans[b] = sms
+        self.action_plans[b], self.action_confine[b] = sms, confine
         self.action_graphs.pop(b, None)
         self.capture_action()
 

@@ -398,7 +398,7 @@ class LockstepEngine(Engine):
             missing = profiler.missing_combos(table, sorted(by_arch), self.batch_sizes)
             if missing and not self._graphed():
                 raise RuntimeError("profiling SM levels needs CUDA graphs (engine.graphs: true)")
-            levels_needed |= set(table.best_levels().values())
+            levels_needed |= set(table.best_levels().values()) | set(table.action_confine.values())
             if missing:
                 levels_needed |= set(sm_levels(sm_count(self.device)))
         else:
@@ -421,7 +421,8 @@ class LockstepEngine(Engine):
             t1 = time.perf_counter()
             for st in self.stages.values():
                 if isinstance(policy, _PendingTable):  # action graphs as the table timed them
-                    st.action_plans = self._action_plans(policy.table, st.arch)
+                    for b, (sms, confine) in self._action_plans(policy.table, st.arch).items():
+                        st.action_plans[b], st.action_confine[b] = sms, confine
                 st.capture_action()
             self.prepare_s["capture"] = time.perf_counter() - t1
 
@@ -436,8 +437,8 @@ class LockstepEngine(Engine):
                 log.info("SM table profiled in %.1f s, saved to %s", table.profile_s, policy.path)
                 # Profiling may have planned an action graph anew (on one model per architecture).
                 for st in self.stages.values():
-                    for b, sms in self._action_plans(table, st.arch).items():
-                        st.replan_action(b, sms)
+                    for b, (sms, confine) in self._action_plans(table, st.arch).items():
+                        st.replan_action(b, sms, confine)
             self.table = table
             policy = TableLevel(table.best_levels())
         self.sm_policy = policy
@@ -452,10 +453,12 @@ class LockstepEngine(Engine):
             torch.cuda.synchronize(self.device)
             self.prepare_s["capture"] = self.prepare_s.get("capture", 0.0) + time.perf_counter() - t1
 
-    def _action_plans(self, table, arch: str) -> dict[int, int | None]:
+    def _action_plans(self, table, arch: str) -> dict[int, tuple[int | None, int | None]]:
+        """Batch -> (SMs the action graph is planned for, VLM level it is confined beside), as profiled."""
         from services.executor.profiler import action_key
 
-        return {b: table.action_plans.get(action_key(arch, b)) for b in self.batch_sizes}
+        return {b: (table.action_plans.get(action_key(arch, b)), table.action_confine.get(action_key(arch, b)))
+                for b in self.batch_sizes}
 
     def _stream_sms(self) -> tuple[int | None, int | None]:
         """SMs of the runner's VLM and action streams when they are partitions of their own

@@ -74,6 +74,9 @@ class SMTable:
     # "arch|batch" -> SMs that action graph's GEMMs are planned for (None: tried, not kept);
     # the entries with that action were timed with it. A key is absent until it was tried.
     action_plans: dict[str, int | None] = field(default_factory=dict)
+    # "arch|batch" -> VLM level whose free SMs that action graph is confined to (GEMMs planned
+    # for them); such a key's action_plans value is None.
+    action_confine: dict[str, int] = field(default_factory=dict)
 
     def best_levels(self) -> dict[Combo, Level]:
         return {e.combo: e.best_sms for e in self.entries}
@@ -216,7 +219,9 @@ def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], 
     return table
 
 
-PLAN_MIN_GAIN = 0.01  # a planned action graph is kept only when its lockstep is this much faster
+PLAN_MIN_GAIN = 0.01  # a planned or confined action graph is kept only when its lockstep is this much faster
+CONFINE_MIN_SMS = 20  # smallest partition an action graph is confined to (cuBLAS failed on 12 SMs on an H100)
+CONFINE_WITHIN = 1.2  # levels tried for confinement: the same-model lockstep within this factor of its best
 
 
 def action_key(arch: str, batch: int) -> str:
@@ -225,18 +230,27 @@ def action_key(arch: str, batch: int) -> str:
 
 def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo], table: SMTable, total_sms: int,
                  repeats: int = 5, warmup: int = 2, bar=None) -> None:
-    """Try each action graph planned for the SMs its usual lockstep leaves free; keep it where faster.
+    """Try each action graph planned for, or confined to, the SMs a restricted VLM leaves free.
 
-    An action graph plans its GEMMs for the whole GPU, but beside a VLM restricted to L SMs
-    it mostly gets the other ``total_sms - L``. For each (action arch, batch) whose same-model
-    lockstep (``(a, b, a, b)``, the common one when a model serves alone) is restricted, its
-    action graph is captured again planned for ``total_sms - L`` and that lockstep is timed
-    again at every level. If it is at least ``PLAN_MIN_GAIN`` faster, the plan is kept and
-    every profiled combination with that action is timed again with it; otherwise the
-    original graph is restored. One graph per (arch, batch) serves every VLM partner: the
-    engine issues the action stage ahead, before it knows which VLM will run beside it.
-    Only (arch, batch) pairs whose every table entry is in ``combos`` are tried (the others
-    would keep entries timed with another graph); the result goes to ``table.action_plans``.
+    Profiled as captured, an action graph plans its GEMMs for the whole GPU and may run on
+    any SM. For each (action arch, batch) whose same-model lockstep (``(a, b, a, b)``, the
+    common one when a model serves alone) is best restricted, at level L*, two kinds of
+    graph are tried against that lockstep:
+
+    - planned: on the plain action stream, GEMMs planned for ``total_sms - L*`` (timed at
+      every level);
+    - confined: on the SMs a VLM at level L leaves free (``GreenStreams.complement``), GEMMs
+      planned for them, for each L with at least ``CONFINE_MIN_SMS`` free SMs whose
+      unconfined lockstep was within ``CONFINE_WITHIN`` of the best (timed at level L, where
+      the two stages share no SM).
+
+    The fastest is kept if it beats the profiled graph by ``PLAN_MIN_GAIN``, and every
+    profiled combination with that action is then timed again with it at every level;
+    otherwise the profiled graph is restored. One graph per (arch, batch) serves every VLM
+    partner: the engine issues the action stage ahead, before it knows which VLM runs
+    beside it. Only (arch, batch) pairs whose every table entry is in ``combos`` are tried
+    (others would keep entries timed with another graph). Results go to
+    ``table.action_plans`` and ``table.action_confine``.
     """
     by_action: dict[tuple[str, int], list[Combo]] = {}
     for c in combos:
@@ -250,38 +264,64 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
             continue
         if any(e.combo[2:] == (aa, ab) and e.combo not in own for e in table.entries):
             continue
+        table.action_plans[key] = None
         if diag.best_sms is None:
-            table.action_plans[key] = None
             continue
-        plan = total_sms - diag.best_sms
-        ast.replan_action(ab, plan)
+
+        def timed(level: Level, combo: Combo = diag.combo) -> float:
+            if bar is not None:
+                bar.update()
+            return time_lockstep(runner, by_arch[combo[0]], combo[1], ast, ab, level, repeats, warmup)
 
         def retime(combo: Combo) -> ProfileEntry:
-            va, vb = combo[:2]
-            times = {}
-            for level in levels:
-                times[level_name(level)] = time_lockstep(runner, by_arch[va], vb, ast, ab, level, repeats, warmup)
-                if bar is not None:
-                    bar.update()
+            times = {level_name(lv): timed(lv, combo) for lv in levels}
             best = min(levels, key=lambda lv: times[level_name(lv)])
             return ProfileEntry(*combo, best, times[level_name(best)], times["none"], times)
 
+        confine_at = [lv for lv in levels if lv is not None and total_sms - lv >= CONFINE_MIN_SMS
+                      and diag.times_ms.get(level_name(lv), float("inf")) <= CONFINE_WITHIN * diag.best_ms]
+        if bar is not None:
+            bar.total += len(levels) + len(confine_at)
+        candidates: list[tuple[float, int | None, int | None]] = []  # (ms, planned SMs, confined level)
+        plan = total_sms - diag.best_sms
+        if bar is not None:
+            bar.set_postfix_str(f"action {aa}x{ab} planned for {plan} SMs")
+        ast.replan_action(ab, plan)
+        candidates.append((retime(diag.combo).best_ms, plan, None))
+        for lv in confine_at:
+            if bar is not None:
+                bar.set_postfix_str(f"action {aa}x{ab} beside VLM on {lv} SMs")
+            try:
+                ast.replan_action(ab, None, confine=lv)
+                candidates.append((timed(lv), None, lv))
+            except RuntimeError as exc:  # a library kernel that cannot run on so few SMs
+                log.warning("%s x%d action confined beside %d SMs cannot run: %s", aa, ab, lv,
+                            str(exc).splitlines()[0][:200])
+                ast.action_graphs.pop(ab, None)
+        ms, plan, confine = min(candidates, key=lambda c: c[0])
+        kept = ms < diag.best_ms * (1 - PLAN_MIN_GAIN)
+        what = f"confined beside a VLM on {confine} SMs" if confine is not None else f"planned for {plan} SMs"
+        log.info("%s x%d action %s: same-model lockstep %.3f ms against %.3f: %s (tried %s)", aa, ab, what, ms,
+                 diag.best_ms, "kept" if kept else "not kept",
+                 ", ".join(f"{'c' + str(c) if c else 'p' + str(p)} {m:.3f}" for m, p, c in candidates))
+        if not kept:
+            ast.replan_action(ab, None)
+            continue
+        ast.replan_action(ab, plan, confine=confine)
         if bar is not None:
             bar.total += len(levels) * len(own)
-            bar.set_postfix_str(f"action {aa}x{ab} planned for {plan} SMs")
         planned = {diag.combo: retime(diag.combo)}
-        kept = planned[diag.combo].best_ms < diag.best_ms * (1 - PLAN_MIN_GAIN)
-        log.info("%s x%d action planned for %d SMs: same-model lockstep %.3f ms against %.3f: %s", aa, ab, plan,
-                 planned[diag.combo].best_ms, diag.best_ms, "kept" if kept else "not kept")
-        if kept:
-            planned.update({c: retime(c) for c in own if c != diag.combo})
-            table.entries = [planned.get(e.combo, e) for e in table.entries]
-            table.action_plans[key] = plan
-        else:
-            if bar is not None:
-                bar.total -= len(levels) * (len(own) - 1)
+        if planned[diag.combo].best_ms >= diag.best_ms:  # the candidate's one timing was luck
+            log.info("%s x%d action: %.3f ms timed again at every level, not kept", aa, ab,
+                     planned[diag.combo].best_ms)
             ast.replan_action(ab, None)
-            table.action_plans[key] = None
+            continue
+        planned.update({c: retime(c) for c in own if c != diag.combo})
+        table.entries = [planned.get(e.combo, e) for e in table.entries]
+        if confine is not None:
+            table.action_confine[key] = confine
+        else:
+            table.action_plans[key] = plan
 
 
 def format_table(table: SMTable) -> str:
@@ -294,6 +334,9 @@ def format_table(table: SMTable) -> str:
     planned = {k: v for k, v in sorted(table.action_plans.items()) if v is not None}
     if planned:
         lines.append("action graphs planned for fewer SMs: " + ", ".join(f"{k} {v}" for k, v in planned.items()))
+    if table.action_confine:
+        lines.append("action graphs confined beside a VLM level: "
+                     + ", ".join(f"{k} {v}" for k, v in sorted(table.action_confine.items())))
     return "\n".join(lines)
 
 

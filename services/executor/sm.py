@@ -65,6 +65,7 @@ class GreenStreams:
         self.total_sms = sm_count(device)
         self._contexts: dict[int, Any] = {}
         self._streams: dict[int, torch.cuda.Stream] = {}
+        self._complements: dict[int, "DisjointPartition"] = {}
         for level in sorted({lv for lv in levels if lv is not None}):
             if level % SM_GRANULARITY or not 0 < level < self.total_sms:
                 raise ValueError(f"SM level {level} is not a multiple of {SM_GRANULARITY} below {self.total_sms}")
@@ -79,6 +80,18 @@ class GreenStreams:
 
     def stream(self, level: int) -> torch.cuda.Stream:
         return self._streams[level]
+
+    def complement(self, level: int) -> tuple[torch.cuda.Stream, int]:
+        """A stream on the SMs a VLM at ``level`` leaves free, and their count (created on first
+        use, kept for the engine's life). It comes from the same split by count as the level's
+        own context, which takes the low SMs, so work confined here never shares an SM with
+        a VLM graph of that level (or lower)."""
+        if level not in self._complements:
+            if level % SM_GRANULARITY or not 0 < level < self.total_sms:
+                raise ValueError(f"SM level {level} is not a multiple of {SM_GRANULARITY} below {self.total_sms}")
+            self._complements[level] = split_disjoint(self.device, level)
+        part = self._complements[level]
+        return part.action_stream, part.action_sms
 
 
 @dataclass

@@ -8,6 +8,8 @@ import time
 import numpy as np
 import pytest
 import torch
+import triton
+import triton.language as tl
 
 pytestmark = pytest.mark.gpu
 
@@ -62,6 +64,33 @@ def test_graph_captured_on_green_stream_runs_restricted():
     full, restricted = _time_graph(graphs["full"], plain), _time_graph(graphs["16"], plain)
     print(f"8192^3 bf16 matmul graph: unrestricted {full:.2f} ms, captured on 16 SMs {restricted:.2f} ms")
     assert restricted > 3.0 * full
+
+
+@triton.jit
+def _sm_ids(out_ptr):
+    sm = tl.inline_asm_elementwise("mov.u32 $0, %smid;", "=r", [], dtype=tl.int32, is_pure=False, pack=1)
+    tl.store(out_ptr + tl.program_id(0), sm)
+
+
+def test_level_and_its_complement_share_no_sm():
+    """Work on a level's green stream and on ``complement(level)`` runs on disjoint SM sets
+    that together cover the GPU (read from each program's %smid)."""
+    total = torch.cuda.get_device_properties(DEV).multi_processor_count
+    green = GreenStreams(DEV, [48, 96])
+    for level in (48, 96):
+        used = {}
+        free, free_sms = green.complement(level)
+        for name, stream in (("level", green.stream(level)), ("complement", free)):
+            out = torch.full((total * 64,), -1, dtype=torch.int32, device=DEV)
+            stream.wait_stream(torch.cuda.current_stream(DEV))
+            with torch.cuda.stream(stream):
+                _sm_ids[(out.numel(),)](out)
+            stream.synchronize()
+            used[name] = set(out.tolist())
+        print(f"level {level}: {len(used['level'])} SMs used, complement {len(used['complement'])} of {free_sms}")
+        assert -1 not in used["level"] | used["complement"]
+        assert len(used["level"]) == level and len(used["complement"]) == free_sms == total - level
+        assert not used["level"] & used["complement"]
 
 
 def _engine(models: dict, cfg: EngineConfig, policy=None) -> tuple[LockstepEngine, list[Result]]:
@@ -209,26 +238,31 @@ def test_table_action_plan_is_captured_and_serves_equal_to_eager(tmp_path):
     arch = "heavytoy:full"
     table = SMTable(torch.cuda.get_device_name(DEV), torch.cuda.get_device_properties(DEV).multi_processor_count,
                     torch.__version__, 2, [arch], gemm_plan=GEMM_PLAN,
-                    action_plans={f"{arch}|2": 76, f"{arch}|1": None})
+                    action_plans={f"{arch}|2": 76, f"{arch}|1": None}, action_confine={f"{arch}|1": 64})
     table.entries = [ProfileEntry(arch, vb, arch, ab, 56, 1.0, 1.0, {"56": 1.0, "none": 1.0})
                      for vb in (1, 2) for ab in (1, 2)]
     table.save(tmp_path / "table.json")
     eng, results = _engine({"h": h}, EngineConfig(kind="robion", max_batch=2, sm_table=str(tmp_path / "table.json")))
     st = eng.stages["h"]
-    assert st.action_plans == {1: None, 2: 76}
+    assert st.action_plans == {1: None, 2: 76} and st.action_confine == {1: 64, 2: None}
     before = blas_settings()
     seen: dict[int, set] = {}
     body = st._action_body
 
     def spying(b):
-        seen.setdefault(b, set()).add(blas_settings())
+        seen.setdefault(b, set()).add((blas_settings(), torch.cuda.current_stream(DEV).cuda_stream))
         return body(b)
 
     st._action_body = spying
     st.action_graphs.clear()
     st.capture_action()
     total = torch.cuda.get_device_properties(DEV).multi_processor_count
-    assert seen == {2: {(torch._C._BlasBackend.Cublaslt, total - 76)}, 1: {before}}
+    free, free_sms = eng.green.complement(64)
+    assert free_sms == total - 64
+    # Batch 2 planned for 76 SMs on the action stream; batch 1 confined to the SMs a 64-SM VLM
+    # leaves free, planned for them.
+    assert seen == {2: {((torch._C._BlasBackend.Cublaslt, total - 76), eng.runner.action_stream.cuda_stream)},
+                    1: {((torch._C._BlasBackend.Cublaslt, 64), free.cuda_stream)}}
     assert blas_settings() == before
     st._action_body = body
     reqs = requests(h, "h", 16, 8)
@@ -251,7 +285,8 @@ def test_profiling_tries_planned_action_graphs_and_keeps_stages_consistent(tmp_p
     for b in (1, 2):
         for name in ("h1", "h2"):
             assert eng.stages[name].action_plans.get(b) == table.action_plans[f"{arch}|{b}"]
-    print(f"action plans {table.action_plans}; same-model best levels "
+            assert eng.stages[name].action_confine.get(b) == table.action_confine.get(f"{arch}|{b}")
+    print(f"action plans {table.action_plans}, confined {table.action_confine}; same-model best levels "
           f"{[(b, entries[(arch, b, arch, b)].best_sms) for b in (1, 2)]}")
     reqs = requests(h1, "h1", 10, 9) + requests(h2, "h2", 10, 10)
     _serve(eng, reqs, results)
