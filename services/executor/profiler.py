@@ -221,7 +221,7 @@ def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], 
 
 PLAN_MIN_GAIN = 0.01  # a planned or confined action graph is kept only when its lockstep is this much faster
 CONFINE_MIN_SMS = 20  # smallest partition an action graph is confined to (cuBLAS failed on 12 SMs on an H100)
-CONFINE_WITHIN = 1.2  # levels tried for confinement: the same-model lockstep within this factor of its best
+CANDIDATE_WITHIN = 1.2  # levels tried: where the same-model lockstep was within this factor of its best
 
 
 def action_key(arch: str, batch: int) -> str:
@@ -234,19 +234,17 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
 
     Profiled as captured, an action graph plans its GEMMs for the whole GPU and may run on
     any SM. For each (action arch, batch) whose same-model lockstep (``(a, b, a, b)``, the
-    common one when a model serves alone) is best restricted, at level L*, two kinds of
-    graph are tried against that lockstep:
+    common one when a model serves alone) is best restricted, and each level L where that
+    lockstep was within ``CANDIDATE_WITHIN`` of its best, two graphs are tried in it with
+    the VLM at L:
 
-    - planned: on the plain action stream, GEMMs planned for ``total_sms - L*`` (timed at
-      every level);
-    - confined: on the SMs a VLM at level L leaves free (``GreenStreams.complement``), GEMMs
-      planned for them, for each L with at least ``CONFINE_MIN_SMS`` free SMs whose
-      unconfined lockstep was within ``CONFINE_WITHIN`` of the best (timed at level L, where
-      the two stages share no SM).
+    - planned: on the plain action stream, GEMMs planned for ``total_sms - L``;
+    - confined: on the SMs a VLM at L leaves free (``GreenStreams.complement``), GEMMs
+      planned for them, where they are at least ``CONFINE_MIN_SMS``.
 
-    The fastest is kept if it beats the profiled graph by ``PLAN_MIN_GAIN``, and every
-    profiled combination with that action is then timed again with it at every level;
-    otherwise the profiled graph is restored. One graph per (arch, batch) serves every VLM
+    The fastest is timed again at every level and kept if it beats the profiled graph by
+    ``PLAN_MIN_GAIN``; every profiled combination with that action is then timed again with
+    it at every level. Otherwise the profiled graph is restored. One graph per (arch, batch) serves every VLM
     partner: the engine issues the action stage ahead, before it knows which VLM runs
     beside it. Only (arch, batch) pairs whose every table entry is in ``combos`` are tried
     (others would keep entries timed with another graph). Results go to
@@ -278,26 +276,27 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
             best = min(levels, key=lambda lv: times[level_name(lv)])
             return ProfileEntry(*combo, best, times[level_name(best)], times["none"], times)
 
-        confine_at = [lv for lv in levels if lv is not None and total_sms - lv >= CONFINE_MIN_SMS
-                      and diag.times_ms.get(level_name(lv), float("inf")) <= CONFINE_WITHIN * diag.best_ms]
+        near = [lv for lv in levels if lv is not None
+                and diag.times_ms.get(level_name(lv), float("inf")) <= CANDIDATE_WITHIN * diag.best_ms]
+        tries = [(total_sms - lv, None, lv) for lv in near] + \
+                [(None, lv, lv) for lv in near if total_sms - lv >= CONFINE_MIN_SMS]
         if bar is not None:
-            bar.total += len(levels) + len(confine_at)
+            bar.total += len(tries)
         candidates: list[tuple[float, int | None, int | None]] = []  # (ms, planned SMs, confined level)
-        plan = total_sms - diag.best_sms
-        if bar is not None:
-            bar.set_postfix_str(f"action {aa}x{ab} planned for {plan} SMs")
-        ast.replan_action(ab, plan)
-        candidates.append((retime(diag.combo).best_ms, plan, None))
-        for lv in confine_at:
+        for plan, confine, lv in tries:
             if bar is not None:
-                bar.set_postfix_str(f"action {aa}x{ab} beside VLM on {lv} SMs")
+                bar.set_postfix_str(f"action {aa}x{ab} " + (f"beside VLM on {lv} SMs" if confine else
+                                                          f"planned for {plan} SMs"))
             try:
-                ast.replan_action(ab, None, confine=lv)
-                candidates.append((timed(lv), None, lv))
+                ast.replan_action(ab, plan, confine=confine)
+                candidates.append((timed(lv), plan, confine))
             except RuntimeError as exc:  # a library kernel that cannot run on so few SMs
-                log.warning("%s x%d action confined beside %d SMs cannot run: %s", aa, ab, lv,
+                log.warning("%s x%d action %s cannot run: %s", aa, ab, f"planned {plan}, confined {confine}",
                             str(exc).splitlines()[0][:200])
                 ast.action_graphs.pop(ab, None)
+        if not candidates:
+            ast.replan_action(ab, None)
+            continue
         ms, plan, confine = min(candidates, key=lambda c: c[0])
         kept = ms < diag.best_ms * (1 - PLAN_MIN_GAIN)
         what = f"confined beside a VLM on {confine} SMs" if confine is not None else f"planned for {plan} SMs"
