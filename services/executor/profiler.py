@@ -6,6 +6,9 @@ co-occur in a lockstep, the profiler replays that lockstep on the GPU at every S
 (multiples of 8 up to the SM count, plus unrestricted) and keeps the fastest. It uses the
 engine's own runner and graphs, so it times exactly what serving will run.
 
+Then each action graph is tried planned for, or confined to, the SMs a restricted VLM leaves
+free, and kept that way where its lockstep gets faster (``plan_actions``).
+
 Tables are JSON, keyed by GPU name, torch version, max_batch and the architectures, cached
 in a state directory and reused on later starts. Entries are keyed by ``profile_key``
 (architecture and size), so fine-tuned variants of one architecture share them, and a
