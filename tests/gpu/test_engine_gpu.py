@@ -8,13 +8,14 @@ import time
 import numpy as np
 import pytest
 import torch
-import triton
-import triton.language as tl
 
 pytestmark = pytest.mark.gpu
 
 if not torch.cuda.is_available():  # collected on CPU hosts only to be deselected/skipped
     pytest.skip("needs a CUDA GPU", allow_module_level=True)
+
+import triton  # noqa: E402
+import triton.language as tl  # noqa: E402
 
 import bench.models  # noqa: E402,F401  (registers heavytoy)
 from services.executor.engine import ServedModel  # noqa: E402
