@@ -325,6 +325,90 @@ def test_profiler_flow_and_table_round_trip(tmp_path):
     assert old.action_plans == {} and old.action_confine == {}
 
 
+class _PlannableStages(BufferedStages):
+    """CPU stages that record how their action graph would be captured (the GPU ones capture
+    it); a capture at a level in ``fails`` raises, as cuBLAS does on too small a partition."""
+
+    def __init__(self, *args, fails=(), **kw):
+        super().__init__(*args, **kw)
+        self.plan: dict[int, tuple] = {}
+        self.fails = set(fails)
+
+    def replan_action(self, b, sms, confine=None):
+        if confine in self.fails:
+            self.plan[b] = ("failed",)
+            raise RuntimeError("CUBLAS_STATUS_EXECUTION_FAILED")
+        self.plan[b] = (None, confine) if confine is not None else (sms, None)
+
+
+def _plan_case(monkeypatch, lockstep_ms, fails=(), extra_entries=()):
+    """plan_actions over one architecture's four combos at levels 32, 64 and none, the action
+    stage's lockstep time given by ``lockstep_ms(batch, plan, level)``."""
+    from services.executor import profiler
+
+    st = _PlannableStages(build_model("toy", seed=1), CPU, [1, 2], fails=fails)
+    a = st.arch
+    levels = [32, 64, None]
+    base = {"32": 11.0, "64": 10.0, "none": 12.0}
+    table = SMTable("cpu", 132, torch.__version__, 2, [a])
+    table.entries = [profiler.ProfileEntry(a, vb, a, ab, 64, 10.0, 12.0, dict(base))
+                     for vb in (1, 2) for ab in (1, 2)] + list(extra_entries)
+    timed = []
+
+    def fake_time(runner, vst, vb, ast, ab, level, repeats, warmup=2):
+        timed.append((vb, ab, level))
+        return lockstep_ms(ab, ast.plan.get(ab, (None, None)), level)
+
+    monkeypatch.setattr(profiler, "time_lockstep", fake_time)
+    combos = combos_for([a], [1, 2])
+    profiler.plan_actions({a: st}, HostRunner(), levels, combos, table, 132, repeats=1, warmup=0)
+    return st, table, timed
+
+
+def test_plan_actions_keeps_a_faster_graph_and_times_every_combo_with_it(monkeypatch):
+    def ms(b, plan, level):
+        base = {32: 11.0, 64: 10.0, None: 12.0}[level]
+        if b == 2 and plan == (None, 64):
+            return base - 2.0  # confined beside a 64-SM VLM: 20% faster at every level
+        if b == 1 and plan == (68, None):
+            return base - 0.05  # planned for 68 SMs: 0.5%, under PLAN_MIN_GAIN
+        return base
+
+    st, table, timed = _plan_case(monkeypatch, ms, fails={32})
+    a = st.arch
+    assert table.action_confine == {f"{a}|2": 64} and table.action_plans == {f"{a}|1": None, f"{a}|2": None}
+    assert st.plan == {1: (None, None), 2: (None, 64)}  # b=1 restored, b=2 kept confined
+    by = {e.combo: e for e in table.entries}
+    for vb in (1, 2):  # every combo with the kept action was timed again with it
+        assert by[(a, vb, a, 2)].best_ms == 8.0 and by[(a, vb, a, 2)].times_ms == {"32": 9.0, "64": 8.0, "none": 10.0}
+        assert by[(a, vb, a, 1)].best_ms == 10.0  # not kept: the profiled entries stay
+    assert (1, 2, 32) in timed and (2, 2, 32) in timed  # the confined candidate at 32 failed; 64's ran
+
+
+def test_plan_actions_drops_a_candidate_whose_gain_does_not_hold_at_every_level(monkeypatch):
+    calls = {"n": 0}
+
+    def ms(b, plan, level):
+        base = {32: 11.0, 64: 10.0, None: 12.0}[level]
+        if b == 2 and plan == (68, None):
+            calls["n"] += 1
+            return 9.0 if calls["n"] == 1 else 9.95  # fast once, by luck; within 1% when timed again
+        return base
+
+    st, table, _ = _plan_case(monkeypatch, ms)
+    assert st.plan[2] == (None, None) and table.action_plans[f"{st.arch}|2"] is None
+    assert {e.best_ms for e in table.entries} == {10.0}
+
+
+def test_plan_actions_leaves_an_action_with_entries_outside_the_profiled_combos(monkeypatch):
+    from services.executor.profiler import ProfileEntry
+
+    other = ProfileEntry("other:full", 2, "toy:tiny", 2, 64, 9.0, 12.0, {"64": 9.0, "none": 12.0})
+    st, table, timed = _plan_case(monkeypatch, lambda b, plan, level: 1.0, extra_entries=[other])
+    assert f"{st.arch}|2" not in table.action_plans and 2 not in st.plan  # not tried: "other" was timed without it
+    assert f"{st.arch}|1" in table.action_plans
+
+
 def test_table_timed_with_other_captures_is_not_reused(tmp_path):
     from services.executor.profiler import GEMM_PLAN, _matches
 

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-from services.executor.sm import Level, level_name, parse_level
+from services.executor.sm import SM_GRANULARITY, Level, level_name, parse_level
 from shared.files import write_atomic
 
 log = logging.getLogger(__name__)
@@ -123,6 +123,11 @@ def _matches(table: SMTable, gpu: str, torch_version: str) -> bool:
     return table.gpu == gpu and table.torch == torch_version and table.gemm_plan == GEMM_PLAN
 
 
+def _action_changed(table: SMTable, entry: ProfileEntry) -> bool:
+    key = action_key(entry.action, entry.action_batch)
+    return table.action_plans.get(key) is not None or key in table.action_confine
+
+
 def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_table: str | None,
                  profile_dir: str) -> tuple[Path, SMTable]:
     """The table to use and where to save it: the configured file, the cached one for this
@@ -156,8 +161,11 @@ def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_tabl
             log.warning("ignoring unreadable SM table %s", other)
             continue
         if _matches(table, gpu, version):
+            # Only entries timed with the action graph as torch captures it: one timed with a
+            # planned or confined graph would be served with another (the new table has no
+            # plans yet), so it is profiled again.
             fresh.entries += [e for e in table.entries if e.combo in wanted and e.combo not in
-                              {x.combo for x in fresh.entries}]
+                              {x.combo for x in fresh.entries} and not _action_changed(table, e)]
     if fresh.entries:
         log.info("reusing %d cached SM table entries from %s", len(fresh.entries), profile_dir)
     return path, fresh
@@ -281,7 +289,7 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
 
         near = [lv for lv in levels if lv is not None
                 and diag.times_ms.get(level_name(lv), float("inf")) <= CANDIDATE_WITHIN * diag.best_ms]
-        tries = [(total_sms - lv, None, lv) for lv in near] + \
+        tries = [(total_sms - lv, None, lv) for lv in near if total_sms - lv >= SM_GRANULARITY] + \
                 [(None, lv, lv) for lv in near if total_sms - lv >= CONFINE_MIN_SMS]
         if bar is not None:
             bar.total += len(tries)
@@ -295,8 +303,7 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
                 candidates.append((timed(lv), plan, confine))
             except RuntimeError as exc:  # a library kernel that cannot run on so few SMs
                 log.warning("%s x%d action %s cannot run: %s", aa, ab, f"planned {plan}, confined {confine}",
-                            str(exc).splitlines()[0][:200])
-                ast.action_graphs.pop(ab, None)
+                            str(exc).splitlines()[0][:200])  # replan_action dropped the old graph first
         if not candidates:
             ast.replan_action(ab, None)
             continue
@@ -313,7 +320,7 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
         if bar is not None:
             bar.total += len(levels) * len(own)
         planned = {diag.combo: retime(diag.combo)}
-        if planned[diag.combo].best_ms >= diag.best_ms:  # the candidate's one timing was luck
+        if planned[diag.combo].best_ms >= diag.best_ms * (1 - PLAN_MIN_GAIN):  # its one timing was luck
             log.info("%s x%d action: %.3f ms timed again at every level, not kept", aa, ab,
                      planned[diag.combo].best_ms)
             ast.replan_action(ab, None)

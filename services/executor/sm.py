@@ -3,7 +3,8 @@
 A *level* is the number of SMs the VLM stage may occupy during one lockstep; ``None`` means
 unrestricted. The guarded design keeps one green context per level, all starting from the
 same low SMs (each ``GreenContext.create`` splits the device on its own), while the action
-stage runs on a plain stream and may use every SM. CUDA graphs keep the SM limit of the
+stage runs on a plain stream and may use every SM (unless the SM table confined its action
+graph to a level's ``complement``). CUDA graphs keep the SM limit of the
 stream they were captured on, so the green streams are needed for capture (and for eager
 VLM launches); replaying a restricted graph works from any stream.
 
