@@ -436,9 +436,11 @@ class LockstepEngine(Engine):
                 self.prepare_s["profile"] = time.perf_counter() - t1
                 log.info("SM table profiled in %.1f s, saved to %s", table.profile_s, policy.path)
                 # Profiling may have planned an action graph anew (on one model per architecture).
+                t1 = time.perf_counter()
                 for st in self.stages.values():
                     for b, (sms, confine) in self._action_plans(table, st.arch).items():
                         st.replan_action(b, sms, confine)
+                self.prepare_s["capture"] = self.prepare_s.get("capture", 0.0) + time.perf_counter() - t1
             self.table = table
             policy = TableLevel(table.best_levels())
         self.sm_policy = policy
