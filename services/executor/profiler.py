@@ -187,6 +187,19 @@ def time_lockstep(runner, vst, vb: int, ast, ab: int, level: Level, repeats: int
     return statistics.median(samples)
 
 
+def time_entry(runner, by_arch: dict, combo: Combo, levels: list[Level], repeats: int, warmup: int,
+               bar=None) -> ProfileEntry:
+    """Time one combo at every level with the architectures' current graphs; keep the fastest."""
+    va, vb, aa, ab = combo
+    times: dict[str, float] = {}
+    for level in levels:
+        times[level_name(level)] = time_lockstep(runner, by_arch[va], vb, by_arch[aa], ab, level, repeats, warmup)
+        if bar is not None:
+            bar.update()
+    best = min(levels, key=lambda lv: times[level_name(lv)])
+    return ProfileEntry(va, vb, aa, ab, best, times[level_name(best)], times["none"], times)
+
+
 def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], combos: list[Combo],
             table: SMTable, repeats: int = 5, warmup: int = 2, progress: bool = True,
             total_sms: int | None = None) -> SMTable:
@@ -209,13 +222,8 @@ def profile(by_arch: dict, runner, batch_sizes: list[int], levels: list[Level], 
         vst = by_arch[va]
         vst.capture_vlm(vb, set(levels))
         for aa, ab in actions:
-            ast = by_arch[aa]
-            times: dict[str, float] = {}
-            for level in levels:
-                times[level_name(level)] = time_lockstep(runner, vst, vb, ast, ab, level, repeats, warmup)
-                bar.update()
-            best = min(levels, key=lambda lv: times[level_name(lv)])
-            entry = ProfileEntry(va, vb, aa, ab, best, times[level_name(best)], times["none"], times)
+            entry = time_entry(runner, by_arch, (va, vb, aa, ab), levels, repeats, warmup, bar)
+            best = entry.best_sms
             if entry.combo in done:
                 table.entries = [e for e in table.entries if e.combo != entry.combo]
             table.entries.append(entry)
@@ -277,15 +285,13 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
         if diag.best_sms is None:
             continue
 
-        def timed(level: Level, combo: Combo = diag.combo) -> float:
+        def timed(level: Level) -> float:
             if bar is not None:
                 bar.update()
-            return time_lockstep(runner, by_arch[combo[0]], combo[1], ast, ab, level, repeats, warmup)
+            return time_lockstep(runner, by_arch[aa], ab, ast, ab, level, repeats, warmup)
 
         def retime(combo: Combo) -> ProfileEntry:
-            times = {level_name(lv): timed(lv, combo) for lv in levels}
-            best = min(levels, key=lambda lv: times[level_name(lv)])
-            return ProfileEntry(*combo, best, times[level_name(best)], times["none"], times)
+            return time_entry(runner, by_arch, combo, levels, repeats, warmup, bar)
 
         near = [lv for lv in levels if lv is not None
                 and diag.times_ms.get(level_name(lv), float("inf")) <= CANDIDATE_WITHIN * diag.best_ms]

@@ -68,12 +68,15 @@ class GreenStreams:
         self._streams: dict[int, torch.cuda.Stream] = {}
         self._complements: dict[int, "DisjointPartition"] = {}
         for level in sorted({lv for lv in levels if lv is not None}):
-            if level % SM_GRANULARITY or not 0 < level < self.total_sms:
-                raise ValueError(f"SM level {level} is not a multiple of {SM_GRANULARITY} below {self.total_sms}")
+            self._check(level)
             ctx = GreenContext.create(num_sms=level, device_id=device.index or 0)
             self._contexts[level] = ctx
             self._streams[level] = ctx.Stream()
         log.info("green contexts for SM levels %s of %d", sorted(self._streams), self.total_sms)
+
+    def _check(self, level: int) -> None:
+        if level % SM_GRANULARITY or not 0 < level < self.total_sms:
+            raise ValueError(f"SM level {level} is not a multiple of {SM_GRANULARITY} below {self.total_sms}")
 
     @property
     def levels(self) -> list[int]:
@@ -88,8 +91,7 @@ class GreenStreams:
         own context, which takes the low SMs, so work confined here never shares an SM with
         a VLM graph of that level (or lower)."""
         if level not in self._complements:
-            if level % SM_GRANULARITY or not 0 < level < self.total_sms:
-                raise ValueError(f"SM level {level} is not a multiple of {SM_GRANULARITY} below {self.total_sms}")
+            self._check(level)
             self._complements[level] = split_disjoint(self.device, level)
         part = self._complements[level]
         return part.action_stream, part.action_sms
