@@ -50,6 +50,7 @@ from bench.experiments.sm_target import sm_target  # noqa: E402
 from bench.experiments.timing import replay_ms  # noqa: E402
 from services.executor.graphs import GraphPools, GraphStages  # noqa: E402
 from services.executor.lockstep import CudaRunner  # noqa: E402
+from services.executor.profiler import lockstep_samples  # noqa: E402
 from services.executor.sm import GreenStreams, sm_count, split_disjoint  # noqa: E402
 from shared.models import build_model  # noqa: E402
 
@@ -99,18 +100,8 @@ class ClockLog:
 def lockstep_times(runner: CudaRunner, st: GraphStages, repeats: int, warmup: int = 3) -> list[tuple]:
     """(VLM ms, action ms, lockstep ms) of ``repeats`` locksteps: action b=2 beside VLM b=2
     at level None (the graph under that key is the variant's)."""
-    out = []
-    for i in range(warmup + repeats):
-        runner.begin(i)
-        runner.launch_handoff(st, B)
-        runner.launch_action(st, B, 0)
-        runner.launch_vlm(st, B, None, after_handoff=True)
-        runner.end_launch()
-        runner.wait()
-        if i >= warmup:
-            t = runner.measure(i, False)
-            out.append((t.vlm_ms, t.action_ms, t.duration_ms))
-    return out
+    return [(t.vlm_ms, t.action_ms, t.duration_ms)
+            for t in lockstep_samples(runner, st, B, st, B, None, repeats, warmup)]
 
 
 def run_model(arch: str, levels: list[int], device: torch.device, rounds: int, repeats: int,

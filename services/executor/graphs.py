@@ -141,12 +141,17 @@ class GraphStages(BufferedStages):
     def replan_action(self, b: int, sms: int | None, confine: int | None = None) -> None:
         """Capture batch ``b``'s action graph again: its GEMMs planned for ``sms`` SMs (None: the
         action stream's own) or, with ``confine``, on the SMs a VLM at that level leaves free."""
-        if confine is not None:
-            sms = None  # planned for the complement's own SM count
-        if (self.action_plans.get(b), self.action_confine.get(b)) == (sms, confine) and b in self.action_graphs:
-            return
-        self.action_plans[b], self.action_confine[b] = sms, confine
-        self.action_graphs.pop(b, None)
+        self.set_action_plans({b: (sms, confine)})
+
+    def set_action_plans(self, plans: dict[int, tuple[int | None, int | None]]) -> None:
+        """Batch -> (SMs, confine) as an SM table chose them (see ``replan_action``). Only graphs
+        whose plan changed, or that are missing, are captured, each once."""
+        for b, (sms, confine) in plans.items():
+            if confine is not None:
+                sms = None  # planned for the complement's own SM count
+            if (self.action_plans.get(b), self.action_confine.get(b)) != (sms, confine):
+                self.action_graphs.pop(b, None)
+            self.action_plans[b], self.action_confine[b] = sms, confine
         self.capture_action()
 
     def capture_vlm(self, b: int, levels: set[Level]) -> None:

@@ -421,8 +421,7 @@ class LockstepEngine(Engine):
             t1 = time.perf_counter()
             for st in self.stages.values():
                 if isinstance(policy, _PendingTable):  # action graphs as the table timed them
-                    for b, (sms, confine) in self._action_plans(policy.table, st.arch).items():
-                        st.action_plans[b], st.action_confine[b] = sms, confine
+                    st.set_action_plans(self._action_plans(policy.table, st.arch))
                 st.capture_action()
             self.prepare_s["capture"] = time.perf_counter() - t1
 
@@ -438,8 +437,7 @@ class LockstepEngine(Engine):
                 # Profiling may have planned an action graph anew (on one model per architecture).
                 t1 = time.perf_counter()
                 for st in self.stages.values():
-                    for b, (sms, confine) in self._action_plans(table, st.arch).items():
-                        st.replan_action(b, sms, confine)
+                    st.set_action_plans(self._action_plans(table, st.arch))
                 self.prepare_s["capture"] = self.prepare_s.get("capture", 0.0) + time.perf_counter() - t1
             self.table = table
             policy = TableLevel(table.best_levels())

@@ -171,9 +171,9 @@ def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_tabl
     return path, fresh
 
 
-def time_lockstep(runner, vst, vb: int, ast, ab: int, level: Level, repeats: int, warmup: int = 2) -> float:
-    """Median duration (ms) of one lockstep with the engine's runner: ``ast``'s action stage at
-    batch ``ab`` beside ``vst``'s VLM stage at batch ``vb`` on ``level`` SMs (after ``warmup`` runs)."""
+def lockstep_samples(runner, vst, vb: int, ast, ab: int, level: Level, repeats: int, warmup: int = 2) -> list:
+    """The runner's timings of ``repeats`` locksteps (after ``warmup`` runs): ``ast``'s action
+    stage at batch ``ab`` beside ``vst``'s VLM stage at batch ``vb`` on ``level`` SMs."""
     samples = []
     for i in range(warmup + repeats):
         runner.begin(i)
@@ -183,8 +183,13 @@ def time_lockstep(runner, vst, vb: int, ast, ab: int, level: Level, repeats: int
         runner.end_launch()
         runner.wait()
         if i >= warmup:
-            samples.append(runner.measure(i, False).duration_ms)
-    return statistics.median(samples)
+            samples.append(runner.measure(i, False))
+    return samples
+
+
+def time_lockstep(runner, vst, vb: int, ast, ab: int, level: Level, repeats: int, warmup: int = 2) -> float:
+    """Median duration (ms) of that lockstep (``lockstep_samples``)."""
+    return statistics.median(t.duration_ms for t in lockstep_samples(runner, vst, vb, ast, ab, level, repeats, warmup))
 
 
 def time_entry(runner, by_arch: dict, combo: Combo, levels: list[Level], repeats: int, warmup: int,
