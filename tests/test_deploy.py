@@ -1,0 +1,73 @@
+"""docker-compose.yml against the code it starts: each service's command names a real entry
+point with options it accepts, the config it names loads, and the addresses in that config
+point at the compose services. (The containers themselves need a Docker daemon; the same
+processes run on loopback in test_cluster.py.)"""
+
+from __future__ import annotations
+
+import importlib
+import shlex
+from pathlib import Path
+from urllib.parse import urlparse
+
+import pytest
+import yaml
+
+from shared.config import load_config
+from shared.service import service_args
+
+ROOT = Path(__file__).resolve().parent.parent
+COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+SERVICES = COMPOSE["services"]
+
+
+def python_argv(service: dict) -> list[str]:
+    """The ``python -m module ...`` argv of a compose command, with the shell's ``$$(hostname)``
+    and ``$${VAR}`` (compose escapes) replaced by the values a container would give them."""
+    cmd = service["command"]
+    if cmd.startswith("sh -c "):
+        cmd = shlex.split(cmd)[2]
+        env = service.get("environment", {})
+        cmd = cmd.replace("$$(hostname)", "replica-1")
+        for key, value in env.items():
+            cmd = cmd.replace(f"$${{{key}}}", value)
+    argv = shlex.split(cmd)
+    assert argv[:2] == ["python", "-m"], f"{service['command']!r} is not a python -m command"
+    return argv[2:]
+
+
+@pytest.mark.parametrize("name", sorted(SERVICES))
+def test_compose_command_is_a_real_entry_point(name):
+    module, *args = python_argv(SERVICES[name])
+    mod = importlib.import_module(module)
+    assert callable(getattr(mod, "main", None)), f"{module} has no main()"
+    service = module.split(".")[1]
+    extra = None
+    if service == "executor":
+        from services.executor.main import _args as extra
+    parsed = service_args(service, args, extra)  # exits (SystemExit) on an option the service does not take
+    cfg = load_config(ROOT / parsed.config)
+    if service == "executor":
+        names = {e.name for e in cfg.executors}
+        models = {m.name for m in cfg.models}
+        # A named executor is in the config; a replica brings models the config defines.
+        assert parsed.name in names or (parsed.models and set(parsed.models.split(",")) <= models), parsed
+
+
+def test_compose_addresses_point_at_compose_services():
+    configs = {python_argv(s)[python_argv(s).index("-c") + 1] for s in SERVICES.values()}
+    assert len(configs) == 1, f"services read different configs: {configs}"
+    cfg = load_config(ROOT / configs.pop())
+    hosts = {urlparse(cfg.router.backend_connect).hostname: urlparse(cfg.router.backend_connect).port,
+             urlparse(cfg.control.connect).hostname: urlparse(cfg.control.connect).port}
+    binds = {"router": urlparse(cfg.router.backend.replace("*", "0.0.0.0")).port,
+             "control": urlparse(cfg.control.bind.replace("*", "0.0.0.0")).port}
+    for host, port in hosts.items():
+        assert host in SERVICES, f"{host} is not a compose service"
+        assert binds[host] == port, f"{host} binds {binds[host]}, the others dial {port}"
+    published = [p.split(":") for p in SERVICES["router"].get("ports", [])]
+    robot_port = urlparse(cfg.router.bind.replace("*", "0.0.0.0")).port
+    assert [str(robot_port)] * 2 in published, f"the robots' port {robot_port} is not published: {published}"
+    for name, service in SERVICES.items():
+        assert set(service.get("depends_on", [])) <= set(SERVICES), name
+        assert service["build"]["dockerfile"] == "deploy/Dockerfile" and (ROOT / "deploy/Dockerfile").exists()
