@@ -23,6 +23,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from bench.experiments.timing import replay_pair_ms  # noqa: E402
 from shared.models import build_model  # noqa: E402
 from shared.models.registry import build_meta  # noqa: E402
 
@@ -65,21 +66,7 @@ def bench_batch(model, batch: int, iters: int, warmup: int) -> dict:
     torch.cuda.synchronize()
     err = (actions.float() - eager.float()).abs().max().item()
 
-    for _ in range(warmup):
-        g_vlm.replay()
-        g_act.replay()
-    ev = [[torch.cuda.Event(enable_timing=True) for _ in range(3)] for _ in range(iters)]
-    torch.cuda.synchronize()
-    for e0, e1, e2 in ev:
-        e0.record()
-        g_vlm.replay()
-        e1.record()
-        g_act.replay()
-        e2.record()
-    torch.cuda.synchronize()
-    vlm = [a.elapsed_time(b) for a, b, _ in ev]
-    act = [b.elapsed_time(c) for _, b, c in ev]
-    tot = [a.elapsed_time(c) for a, _, c in ev]
+    vlm, act, tot = replay_pair_ms(g_vlm, g_act, iters, warmup)
     out = {"vlm_ms": summary(vlm), "action_ms": summary(act), "total_ms": summary(tot),
            "peak_mem_gib": round(torch.cuda.max_memory_allocated() / 2 ** 30, 3),
            "graph_vs_eager_max_abs_diff": err, "finite": bool(torch.isfinite(actions).all().item())}

@@ -55,11 +55,12 @@ def test_compose_command_is_a_real_entry_point(name):
 
 
 def test_compose_addresses_point_at_compose_services():
-    configs = {python_argv(s)[python_argv(s).index("-c") + 1] for s in SERVICES.values()}
+    argvs = [python_argv(s) for s in SERVICES.values()]
+    configs = {argv[argv.index("-c") + 1] for argv in argvs}
     assert len(configs) == 1, f"services read different configs: {configs}"
     cfg = load_config(ROOT / configs.pop())
-    hosts = {urlparse(cfg.router.backend_connect).hostname: urlparse(cfg.router.backend_connect).port,
-             urlparse(cfg.control.connect).hostname: urlparse(cfg.control.connect).port}
+    dialled = [urlparse(cfg.router.backend_connect), urlparse(cfg.control.connect)]
+    hosts = {url.hostname: url.port for url in dialled}
     binds = {"router": urlparse(cfg.router.backend.replace("*", "0.0.0.0")).port,
              "control": urlparse(cfg.control.bind.replace("*", "0.0.0.0")).port}
     for host, port in hosts.items():

@@ -39,6 +39,7 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from bench.experiments.timing import replay_ms, replay_pair_ms  # noqa: E402
 from shared.models import build_model, fused  # noqa: E402
 from shared.models.layers import RMSNorm  # noqa: E402
 
@@ -55,23 +56,6 @@ def set_fold(model, on: bool) -> int:
     """Set the model's ``fold_norms``; returns the number of action layers it folds."""
     model.fold_norms = on
     return sum(1 for m in getattr(model, model.ACTION_MODULES[0]).modules() if hasattr(m, "folded_weights"))
-
-
-def pair_ms(g_vlm, g_act, reps: int) -> tuple[list[float], list[float]]:
-    """Action ms and VLM + action ms of ``reps`` back-to-back replays of the two graphs."""
-    ev = [[torch.cuda.Event(enable_timing=True) for _ in range(3)] for _ in range(reps)]
-    for _ in range(5):
-        g_vlm.replay()
-        g_act.replay()
-    torch.cuda.synchronize()
-    for e0, e1, e2 in ev:
-        e0.record()
-        g_vlm.replay()
-        e1.record()
-        g_act.replay()
-        e2.record()
-    torch.cuda.synchronize()
-    return [b.elapsed_time(c) for _, b, c in ev], [a.elapsed_time(c) for a, _, c in ev]
 
 
 def run(arch: str, batch: int) -> dict:
@@ -143,7 +127,7 @@ def run(arch: str, batch: int) -> dict:
     names = list(variants)
     for r in range(ROUNDS):
         for name in names[r % 3:] + names[:r % 3]:
-            a, t = pair_ms(g_vlm, graphs[name], REPS)
+            _, a, t = replay_pair_ms(g_vlm, graphs[name], REPS)
             act[name] += a
             both[name] += t
     for name in variants:
@@ -161,7 +145,6 @@ def micro() -> list[dict]:
     distinct weights (streamed from HBM): cuBLAS + norm + activation as main runs it, and the
     folded kernel with the norm in the A tile, without a norm (the A tile straight to the dot),
     one program per tile or split-K."""
-    from bench.experiments.timing import replay_ms
     from shared.models.fused import Workspace, gated_act, norm_gated_mlp_in
 
     dev = torch.device("cuda")

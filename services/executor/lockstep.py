@@ -422,7 +422,8 @@ class LockstepEngine(Engine):
             for st in self.stages.values():
                 if isinstance(policy, _PendingTable):  # action graphs as the table timed them
                     st.set_action_plans(self._action_plans(policy.table, st.arch))
-                st.capture_action()
+                else:
+                    st.capture_action()
             self.prepare_s["capture"] = time.perf_counter() - t1
 
         if isinstance(policy, _PendingTable):
