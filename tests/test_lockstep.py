@@ -1,5 +1,6 @@
 """The lockstep engine's logic on the CPU: no streams, graphs or green contexts, same loop."""
 
+import dataclasses
 import json
 import threading
 import time
@@ -377,12 +378,18 @@ def test_plan_actions_keeps_a_faster_graph_and_times_every_combo_with_it(monkeyp
     st, table, timed = _plan_case(monkeypatch, ms, fails={32})
     a = st.arch
     assert table.action_confine == {f"{a}|2": 64} and table.action_plans == {f"{a}|1": None, f"{a}|2": None}
-    assert st.plan == {1: (None, None), 2: (None, 64)}  # b=1 restored, b=2 kept confined
-    by = {e.combo: e for e in table.entries}
-    for vb in (1, 2):  # every combo with the kept action was timed again with it
-        assert by[(a, vb, a, 2)].best_ms == 8.0 and by[(a, vb, a, 2)].times_ms == {"32": 9.0, "64": 8.0, "none": 10.0}
-        assert by[(a, vb, a, 1)].best_ms == 10.0  # not kept: the profiled entries stay
+    assert st.plan == {1: (None, None), 2: (None, None)}  # the plain graphs restored: the engine chooses
+    assert {e.best_ms for e in table.entries} == {10.0}  # the entries keep the plain graph's timings
+    cand = {e.combo: e for e in table.plan_entries[f"{a}|2"]}
+    assert set(cand) == {(a, 1, a, 2), (a, 2, a, 2)} and set(table.plan_entries) == {f"{a}|2"}
+    for vb in (1, 2):  # every combo with the candidate was timed with it
+        assert cand[(a, vb, a, 2)].best_ms == 8.0 and cand[(a, vb, a, 2)].times_ms == {"32": 9.0, "64": 8.0, "none": 10.0}
+    served = table.for_archs([a])  # 16 ms against 20 over its two combinations: used
+    assert served.action_confine == {f"{a}|2": 64} and served.plans()[f"{a}|1"] == (None, None)
+    by = {e.combo: e.best_ms for e in served.entries}
+    assert by[(a, 1, a, 2)] == by[(a, 2, a, 2)] == 8.0 and by[(a, 1, a, 1)] == 10.0
     assert (1, 2, 32) in timed and (2, 2, 32) in timed  # the confined candidate at 32 failed; 64's ran
+    assert f"candidate {a}|2: 2 combinations 16.000 ms against 20.000" in format_table(table)
 
 
 def test_plan_actions_drops_a_candidate_whose_gain_does_not_hold_at_every_level(monkeypatch):
@@ -407,6 +414,87 @@ def test_plan_actions_leaves_an_action_with_entries_outside_the_profiled_combos(
     st, table, timed = _plan_case(monkeypatch, lambda b, plan, level: 1.0, extra_entries=[other])
     assert f"{st.arch}|2" not in table.action_plans and 2 not in st.plan  # not tried: "other" was timed without it
     assert f"{st.arch}|1" in table.action_plans
+
+
+def _entry(va, vb, aa, ab, ms):
+    from services.executor.profiler import ProfileEntry
+
+    return ProfileEntry(va, vb, aa, ab, 64, ms, ms + 2.0, {"64": ms, "none": ms + 2.0})
+
+
+def test_candidate_action_graph_is_used_only_where_the_served_models_gain(tmp_path):
+    """XR0's batch-2 action graph confined beside a 104-SM VLM made its own lockstep faster and
+    (SmolVLA b=1, XR0 b=2) slower: a candidate is used where the served models' combinations
+    with it gain in sum, so XR0 alone uses it and XR0 with SmolVLA does not."""
+    x, s = "xr0:full", "smolvla:full"
+    table = SMTable("H100", 132, torch.__version__, 2, [s, x])
+    table.entries = [_entry(va, vb, aa, ab, 10.0) for va in (s, x) for vb in (1, 2) for aa in (s, x) for ab in (1, 2)]
+    table.action_plans = {f"{x}|2": None, f"{x}|1": None, f"{s}|1": None, f"{s}|2": None}
+    table.action_confine = {f"{x}|2": 104}
+    table.plan_entries = {f"{x}|2": [_entry(x, 1, x, 2, 9.5), _entry(x, 2, x, 2, 9.5),
+                                     _entry(s, 1, x, 2, 13.0), _entry(s, 2, x, 2, 12.0)]}
+    table.save(tmp_path / "t.json")
+    table = SMTable.load(tmp_path / "t.json")
+    assert table.plan_entries[f"{x}|2"][2].best_ms == 13.0  # candidates round-trip
+    alone = table.for_archs([x])
+    assert alone.plans()[f"{x}|2"] == (None, 104) and alone.archs == [x]
+    assert {e.combo: e.best_ms for e in alone.entries} == {(x, 1, x, 1): 10.0, (x, 1, x, 2): 9.5,
+                                                           (x, 2, x, 1): 10.0, (x, 2, x, 2): 9.5}
+    both = table.for_archs([s, x])  # 44 ms against 40 over the four combinations: not used
+    assert both.plans()[f"{x}|2"] == (None, None) and both.action_confine == {}
+    assert {e.best_ms for e in both.entries} == {10.0} and len(both.entries) == 16
+    assert table.plan_totals(f"{x}|2", {s, x}) == (40.0, 44.0, 4)
+    assert f"candidate {x}|2: 4 combinations 44.000 ms against 40.000; same-model 9.500 ms against 10.000; " \
+           f"not used serving all 2 models" in format_table(table)
+    assert both.timing_plans() == {} and table.timing_plans() == {}
+
+
+def test_table_without_candidate_timings_serves_its_plans_as_timed(tmp_path):
+    """A table written before candidates were stored timed its entries with its plans: those
+    plans are served whatever the models, and its entries are not reused for a new table."""
+    from services.executor.profiler import _action_changed
+
+    a = "pi0:full"
+    table = SMTable("H100", 132, torch.__version__, 2, [a])
+    table.entries = [_entry(a, vb, a, ab, 10.0) for vb in (1, 2) for ab in (1, 2)]
+    table.action_plans = {f"{a}|2": 44, f"{a}|1": None}
+    doc = dataclasses.asdict(table)
+    del doc["plan_entries"]
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    old = SMTable.load(tmp_path / "old.json")
+    assert old.timing_plans() == {f"{a}|2": (44, None)}
+    assert old.for_archs([a]).plans() == {f"{a}|2": (44, None), f"{a}|1": (None, None)}
+    assert [_action_changed(old, e) for e in old.entries] == [False, True, False, True]
+
+
+def test_plan_actions_times_an_earlier_candidate_in_new_combinations(monkeypatch):
+    """Profiling a new partner for an action with a candidate times the candidate there too,
+    so that the engine can weigh it over every combination it serves."""
+    from services.executor import profiler
+
+    st = _PlannableStages(build_model("toy", seed=1), CPU, [1, 2])
+    a, o = st.arch, "other:full"
+    table = SMTable("cpu", 132, torch.__version__, 2, [a])
+    table.entries = [_entry(a, vb, a, ab, 10.0) for vb in (1, 2) for ab in (1, 2)]
+    table.action_plans = {f"{a}|1": None, f"{a}|2": None}
+    table.action_confine = {f"{a}|2": 64}
+    table.plan_entries = {f"{a}|2": [_entry(a, 1, a, 2, 8.0), _entry(a, 2, a, 2, 8.0)]}
+    seen = []
+
+    def fake_time(runner, vst, vb, ast, ab, level, repeats, warmup=2):
+        seen.append((vb, ab, level, ast.plan.get(ab)))
+        return 11.0 if ast.plan.get(ab) == (None, 64) else 9.0
+
+    monkeypatch.setattr(profiler, "time_lockstep", fake_time)
+    new = [(o, 1, a, 2), (o, 2, a, 2)]
+    table.entries += [_entry(o, vb, a, 2, 9.0) for vb in (1, 2)]  # profiled with the plain graph
+    profiler.plan_actions({a: st, o: st}, HostRunner(), [64, None], new, table, 132, repeats=1, warmup=0)
+    cand = {e.combo: e.best_ms for e in table.plan_entries[f"{a}|2"]}
+    assert cand == {(a, 1, a, 2): 8.0, (a, 2, a, 2): 8.0, (o, 1, a, 2): 11.0, (o, 2, a, 2): 11.0}
+    assert {x[3] for x in seen} == {(None, 64)} and len(seen) == 4  # two combos at two levels, with it
+    assert st.plan[2] == (None, None)  # and the plain graph restored
+    assert table.for_archs([a, o]).plans()[f"{a}|2"] == (None, None)  # 38 ms with it against 38: not used
+    assert table.for_archs([a]).plans()[f"{a}|2"] == (None, 64)  # 16 against 20: used
 
 
 def test_table_timed_with_other_captures_is_not_reused(tmp_path):

@@ -395,10 +395,12 @@ class LockstepEngine(Engine):
         levels_needed: set[Level] = set()
         if isinstance(policy, _PendingTable):
             table = policy.table
+            served = table.for_archs(sorted(by_arch))
             missing = profiler.missing_combos(table, sorted(by_arch), self.batch_sizes)
             if missing and not self._graphed():
                 raise RuntimeError("profiling SM levels needs CUDA graphs (engine.graphs: true)")
-            levels_needed |= set(table.best_levels().values()) | set(table.action_confine.values())
+            levels_needed |= set(served.best_levels().values()) | set(served.action_confine.values())
+            levels_needed |= {lv for _, lv in table.timing_plans().values() if lv is not None}
             if missing:
                 levels_needed |= set(sm_levels(sm_count(self.device)))
         else:
@@ -420,8 +422,9 @@ class LockstepEngine(Engine):
         if self._graphed():
             t1 = time.perf_counter()
             for st in self.stages.values():
-                if isinstance(policy, _PendingTable):  # action graphs as the table timed them
-                    st.set_action_plans(self._action_plans(policy.table, st.arch))
+                if isinstance(policy, _PendingTable):  # as the table serves them, or as it timed them to profile more
+                    st.set_action_plans(self._action_plans(table.timing_plans() if missing else served.plans(),
+                                                           st.arch))
                 else:
                     st.capture_action()
             self.prepare_s["capture"] = time.perf_counter() - t1
@@ -435,13 +438,19 @@ class LockstepEngine(Engine):
                 table.save(policy.path)
                 self.prepare_s["profile"] = time.perf_counter() - t1
                 log.info("SM table profiled in %.1f s, saved to %s", table.profile_s, policy.path)
-                # Profiling may have planned an action graph anew (on one model per architecture).
+                # Profiling may have found new candidate action graphs (on one model per architecture).
+                served = table.for_archs(sorted(by_arch))
                 t1 = time.perf_counter()
                 for st in self.stages.values():
-                    st.set_action_plans(self._action_plans(table, st.arch))
+                    st.set_action_plans(self._action_plans(served.plans(), st.arch))
                 self.prepare_s["capture"] = self.prepare_s.get("capture", 0.0) + time.perf_counter() - t1
-            self.table = table
-            policy = TableLevel(table.best_levels())
+            used = {k: v for k, v in served.plans().items() if v != (None, None)}
+            if used:
+                log.info("action graphs planned (SMs) or confined (beside a VLM level) for these models: %s",
+                         ", ".join(f"{k} {'confined ' + str(c) if c else 'planned ' + str(p)}"
+                                   for k, (p, c) in sorted(used.items())))
+            self.table = served
+            policy = TableLevel(served.best_levels())
         self.sm_policy = policy
 
         if self._graphed():
@@ -454,12 +463,12 @@ class LockstepEngine(Engine):
             torch.cuda.synchronize(self.device)
             self.prepare_s["capture"] = self.prepare_s.get("capture", 0.0) + time.perf_counter() - t1
 
-    def _action_plans(self, table, arch: str) -> dict[int, tuple[int | None, int | None]]:
-        """Batch -> (SMs the action graph is planned for, VLM level it is confined beside), as profiled."""
+    def _action_plans(self, plans: dict, arch: str) -> dict[int, tuple[int | None, int | None]]:
+        """Batch -> (SMs the action graph is planned for, VLM level it is confined beside), from
+        the table's "arch|batch" -> (SMs, level) map; (None, None): as torch plans it."""
         from services.executor.profiler import action_key
 
-        return {b: (table.action_plans.get(action_key(arch, b)), table.action_confine.get(action_key(arch, b)))
-                for b in self.batch_sizes}
+        return {b: plans.get(action_key(arch, b), (None, None)) for b in self.batch_sizes}
 
     def _stream_sms(self) -> tuple[int | None, int | None]:
         """SMs of the runner's VLM and action streams when they are partitions of their own

@@ -7,7 +7,11 @@ co-occur in a lockstep, the profiler replays that lockstep on the GPU at every S
 engine's own runner and graphs, so it times exactly what serving will run.
 
 Then each action graph is tried planned for, or confined to, the SMs a restricted VLM leaves
-free, and kept that way where its lockstep gets faster (``plan_actions``).
+free. A candidate that makes its same-model lockstep faster is timed in every combination
+with that action and stored beside the plain graph's timings (``plan_actions``). An engine
+uses it only where it makes the combinations of the models it serves faster in sum
+(``SMTable.for_archs``): one graph serves every VLM partner, and a graph confined beside a
+large VLM level can slow the locksteps with a smaller VLM beside it.
 
 Tables are JSON, keyed by GPU name, torch version, max_batch and the architectures, cached
 in a state directory and reused on later starts. Entries are keyed by ``profile_key``
@@ -74,15 +78,66 @@ class SMTable:
     profile_s: float = 0.0  # wall time of the profiling runs that produced the entries
     repeats: int = 0
     gemm_plan: str = ""  # GEMM_PLAN of the captures it was timed with; "" before there was one
-    # "arch|batch" -> SMs that action graph's GEMMs are planned for (None: tried, not kept);
-    # the entries with that action were timed with it. A key is absent until it was tried.
+    # "arch|batch" -> SMs that action graph's GEMMs are planned for (None: tried, no candidate
+    # kept). A key is absent until it was tried.
     action_plans: dict[str, int | None] = field(default_factory=dict)
     # "arch|batch" -> VLM level whose free SMs that action graph is confined to (GEMMs planned
     # for them); such a key's action_plans value is None.
     action_confine: dict[str, int] = field(default_factory=dict)
+    # "arch|batch" -> every combination with that action timed with its planned or confined
+    # graph; ``entries`` hold the same combinations timed with the plain graph. A plan without
+    # such entries comes from a table written before them, whose entries were timed with it.
+    plan_entries: dict[str, list[ProfileEntry]] = field(default_factory=dict)
 
     def best_levels(self) -> dict[Combo, Level]:
         return {e.combo: e.best_sms for e in self.entries}
+
+    def candidate(self, key: str) -> tuple[int | None, int | None]:
+        return self.action_plans.get(key), self.action_confine.get(key)
+
+    def plans(self) -> dict[str, tuple[int | None, int | None]]:
+        """Action key -> (planned SMs, confined level) of every action graph tried."""
+        return {k: self.candidate(k) for k in set(self.action_plans) | set(self.action_confine)}
+
+    def timing_plans(self) -> dict[str, tuple[int | None, int | None]]:
+        """Action key -> (planned SMs, confined level) of the graphs ``entries`` were timed with:
+        the plain graph, except for plans from tables written before ``plan_entries``."""
+        return {k: self.candidate(k) for k in set(self.action_plans) | set(self.action_confine)
+                if k not in self.plan_entries and self.candidate(k) != (None, None)}
+
+    def plan_totals(self, key: str, archs: set[str]) -> tuple[float, float, int]:
+        """Summed best lockstep ms over the combinations with action ``key`` among ``archs``:
+        (plain graph, candidate graph, how many combinations)."""
+        plain = {e.combo: e.best_ms for e in self.entries if e.vlm in archs and e.action in archs}
+        cand = [e for e in self.plan_entries.get(key, []) if e.combo in plain]
+        return sum(plain[e.combo] for e in cand), sum(e.best_ms for e in cand), len(cand)
+
+    def for_archs(self, archs: list[str]) -> "SMTable":
+        """The table an engine serving ``archs`` uses: their entries, and each action graph
+        planned or confined only where that makes their combinations with it faster in sum by
+        ``PLAN_MIN_GAIN`` (each combination counted once: the engine cannot know in advance how
+        often each VLM partner comes). Those combinations then carry the candidate's timings."""
+        served = set(archs)
+        entries = {e.combo: e for e in self.entries if e.vlm in served and e.action in served}
+        plans: dict[str, int | None] = {}
+        confine: dict[str, int] = {}
+        for key in sorted(set(self.action_plans) | set(self.action_confine)):
+            arch = key.rpartition("|")[0]
+            if arch not in served:
+                continue
+            plan, level = self.candidate(key)
+            if key in self.plan_entries:
+                plain, cand, n = self.plan_totals(key, served)
+                if not (n and cand < plain * (1 - PLAN_MIN_GAIN)):
+                    plan, level = None, None
+                else:
+                    entries.update({e.combo: e for e in self.plan_entries[key] if e.combo in entries})
+            plans[key] = plan
+            if level is not None:
+                confine[key] = level
+        return dataclasses.replace(self, archs=sorted(served),
+                                   entries=list(entries.values()), action_plans=plans, action_confine=confine,
+                                   plan_entries={})
 
     def covers(self, combos: list[Combo]) -> bool:
         have = {e.combo for e in self.entries}
@@ -96,6 +151,7 @@ class SMTable:
     def load(cls, path: str | Path) -> "SMTable":
         data = json.loads(Path(path).read_text())
         data["entries"] = [ProfileEntry(**e) for e in data.get("entries", [])]
+        data["plan_entries"] = {k: [ProfileEntry(**e) for e in v] for k, v in data.get("plan_entries", {}).items()}
         return cls(**data)
 
 
@@ -124,8 +180,8 @@ def _matches(table: SMTable, gpu: str, torch_version: str) -> bool:
 
 
 def _action_changed(table: SMTable, entry: ProfileEntry) -> bool:
-    key = action_key(entry.action, entry.action_batch)
-    return table.action_plans.get(key) is not None or key in table.action_confine
+    """Whether ``entry`` was timed with a planned or confined action graph (older tables)."""
+    return action_key(entry.action, entry.action_batch) in table.timing_plans()
 
 
 def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_table: str | None,
@@ -266,13 +322,16 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
     - confined: on the SMs a VLM at L leaves free (``GreenStreams.complement``), GEMMs
       planned for them, where they are at least ``CONFINE_MIN_SMS``.
 
-    The fastest is timed again at every level and kept if it beats the profiled graph by
-    ``PLAN_MIN_GAIN``; every profiled combination with that action is then timed again with
-    it at every level. Otherwise the profiled graph is restored. One graph per (arch, batch) serves every VLM
-    partner: the engine issues the action stage ahead, before it knows which VLM runs
+    The fastest is timed again at every level and kept as a candidate if it beats the profiled
+    graph by ``PLAN_MIN_GAIN``; every profiled combination with that action is then timed
+    with it at every level, into ``table.plan_entries``. The plain graph is restored either
+    way, and ``table.entries`` keep its timings: whether an engine uses the candidate depends
+    on which models it serves (``SMTable.for_archs``). One graph per (arch, batch) serves every
+    VLM partner: the engine issues the action stage ahead, before it knows which VLM runs
     beside it. Only (arch, batch) pairs whose every table entry is in ``combos`` are tried
-    (others would keep entries timed with another graph). Results go to
-    ``table.action_plans`` and ``table.action_confine``.
+    (others would keep entries timed with another graph). A candidate from an earlier run
+    is timed in the new combinations with its action instead. Results go to
+    ``table.action_plans``, ``table.action_confine`` and ``table.plan_entries``.
     """
     by_action: dict[tuple[str, int], list[Combo]] = {}
     for c in combos:
@@ -282,7 +341,18 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
         key = action_key(aa, ab)
         diag = entries.get((aa, ab, aa, ab))
         ast = by_arch[aa]
-        if key in table.action_plans or diag is None or diag.combo not in own or not hasattr(ast, "replan_action"):
+        if not hasattr(ast, "replan_action"):
+            continue
+        if key in table.plan_entries:  # an earlier candidate: time it in the new combinations too
+            have = {e.combo for e in table.plan_entries[key]}
+            todo = [c for c in own if c not in have]
+            if todo:
+                plan, confine = table.candidate(key)
+                ast.replan_action(ab, plan, confine=confine)
+                table.plan_entries[key] += [time_entry(runner, by_arch, c, levels, repeats, warmup, bar) for c in todo]
+                ast.replan_action(ab, None)
+            continue
+        if key in table.action_plans or diag is None or diag.combo not in own:
             continue
         if any(e.combo[2:] == (aa, ab) and e.combo not in own for e in table.entries):
             continue
@@ -337,11 +407,15 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
             ast.replan_action(ab, None)
             continue
         planned.update({c: retime(c) for c in own if c != diag.combo})
-        table.entries = [planned.get(e.combo, e) for e in table.entries]
+        ast.replan_action(ab, None)
+        table.plan_entries[key] = list(planned.values())
         if confine is not None:
             table.action_confine[key] = confine
         else:
             table.action_plans[key] = plan
+        plain_ms, cand_ms, n = table.plan_totals(key, set(table.archs) | set(by_arch))
+        log.info("%s x%d action %s: a candidate; over its %d combinations %.3f ms against %.3f plain", aa, ab,
+                 what, n, cand_ms, plain_ms)
 
 
 def format_table(table: SMTable) -> str:
@@ -357,6 +431,15 @@ def format_table(table: SMTable) -> str:
     if table.action_confine:
         lines.append("action graphs confined beside a VLM level: "
                      + ", ".join(f"{k} {v}" for k, v in sorted(table.action_confine.items())))
+    used = table.for_archs(table.archs)
+    plain = {e.combo: e.best_ms for e in table.entries}
+    for key in sorted(table.plan_entries):
+        total_plain, total_cand, n = table.plan_totals(key, set(table.archs))
+        same = [f"; same-model {e.best_ms:.3f} ms against {plain[e.combo]:.3f}" for e in table.plan_entries[key]
+                if e.vlm == e.action and e.vlm_batch == e.action_batch and e.combo in plain]
+        use = "used" if used.candidate(key) != (None, None) else "not used"
+        lines.append(f"candidate {key}: {n} combinations {total_cand:.3f} ms against {total_plain:.3f}"
+                     f"{''.join(same)}; {use} serving all {len(table.archs)} models")
     return "\n".join(lines)
 
 
@@ -388,7 +471,7 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     engine.prepare()
     log.info("start-up with profiling took %.1f s", time.perf_counter() - t0)
-    print(format_table(engine.table))
+    print(format_table(SMTable.load(args.out)))
     print(f"prepare: {json.dumps({k: round(v, 2) for k, v in engine.prepare_s.items()})}")
 
 

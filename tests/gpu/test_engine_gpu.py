@@ -273,7 +273,7 @@ def test_table_action_plan_is_captured_and_serves_equal_to_eager(tmp_path):
 
 def test_profiling_tries_planned_action_graphs_and_keeps_stages_consistent(tmp_path, monkeypatch):
     """Profiling a table tries each action graph planned for the SMs its same-model lockstep
-    leaves free; every stage's action graph is then the one the table was timed with, and
+    leaves free; every stage's action graph is then the one the table serves with, and
     serving stays equal to eager. The gain threshold is lifted so that profiling keeps its
     best candidates whatever their timing: the engine must capture them again after profiling."""
     from services.executor import profiler
@@ -293,6 +293,11 @@ def test_profiling_tries_planned_action_graphs_and_keeps_stages_consistent(tmp_p
         for name in ("h1", "h2"):
             assert eng.stages[name].action_plans.get(b) == table.action_plans[f"{arch}|{b}"]
             assert eng.stages[name].action_confine.get(b) == table.action_confine.get(f"{arch}|{b}")
+    # The saved table keeps the plain graphs' timings and each candidate's in every combination with it.
+    saved = profiler.SMTable.load(tmp_path / "profiled.json")
+    assert set(saved.plan_entries) == {f"{arch}|{b}" for b in kept}
+    for b in kept:
+        assert {e.combo for e in saved.plan_entries[f"{arch}|{b}"]} == {(arch, vb, arch, b) for vb in (1, 2)}
     print(f"action plans {table.action_plans}, confined {table.action_confine}; same-model best levels "
           f"{[(b, entries[(arch, b, arch, b)].best_sms) for b in (1, 2)]}")
     reqs = requests(h1, "h1", 10, 9) + requests(h2, "h2", 10, 10)
