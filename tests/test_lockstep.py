@@ -495,6 +495,15 @@ def test_plan_actions_times_an_earlier_candidate_in_new_combinations(monkeypatch
     assert st.plan[2] == (None, None)  # and the plain graph restored
     assert table.for_archs([a, o]).plans()[f"{a}|2"] == (None, None)  # 38 ms with it against 38: not used
     assert table.for_archs([a]).plans()[f"{a}|2"] == (None, 64)  # 16 against 20: used
+    # A candidate that cannot be captured any more (cuBLAS on too few SMs) is dropped, not fatal.
+    st.fails = {64}
+    table.entries += [_entry(o, vb, a, 1, 9.0) for vb in (1, 2)]
+    table.action_plans[f"{a}|1"], table.action_confine[f"{a}|1"] = None, 64
+    table.plan_entries[f"{a}|1"] = [_entry(a, 1, a, 1, 8.0), _entry(a, 2, a, 1, 8.0)]
+    profiler.plan_actions({a: st, o: st}, HostRunner(), [64, None], [(o, 1, a, 1), (o, 2, a, 1)], table, 132,
+                          repeats=1, warmup=0)
+    assert f"{a}|1" not in table.plan_entries and table.plans()[f"{a}|1"] == (None, None)
+    assert st.plan[1] == (None, None) and f"{a}|2" in table.plan_entries
 
 
 def test_table_timed_with_other_captures_is_not_reused(tmp_path):

@@ -348,8 +348,16 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
             todo = [c for c in own if c not in have]
             if todo:
                 plan, confine = table.candidate(key)
-                ast.replan_action(ab, plan, confine=confine)
-                table.plan_entries[key] += [time_entry(runner, by_arch, c, levels, repeats, warmup, bar) for c in todo]
+                try:
+                    ast.replan_action(ab, plan, confine=confine)
+                    table.plan_entries[key] += [time_entry(runner, by_arch, c, levels, repeats, warmup, bar)
+                                                for c in todo]
+                except RuntimeError as exc:  # it cannot be weighed over every combination: dropped
+                    log.warning("%s x%d action candidate cannot run here, dropped: %s", aa, ab,
+                                str(exc).splitlines()[0][:200])
+                    del table.plan_entries[key]
+                    table.action_plans[key] = None
+                    table.action_confine.pop(key, None)
                 ast.replan_action(ab, None)
             continue
         if key in table.action_plans or diag is None or diag.combo not in own:
