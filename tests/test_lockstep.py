@@ -447,6 +447,10 @@ def test_candidate_action_graph_is_used_only_where_the_served_models_gain(tmp_pa
     assert f"candidate {x}|2: 4 combinations 44.000 ms against 40.000; same-model 9.500 ms against 10.000; " \
            f"not used serving all 2 models" in format_table(table)
     assert both.timing_plans() == {} and table.timing_plans() == {}
+    # Not timed beside every served VLM (a partner profiled later, say): not used with it.
+    table.plan_entries[f"{x}|2"] = table.plan_entries[f"{x}|2"][:2]
+    assert table.for_archs([x]).plans()[f"{x}|2"] == (None, 104)
+    assert table.for_archs([s, x]).plans()[f"{x}|2"] == (None, None)
 
 
 def test_table_without_candidate_timings_serves_its_plans_as_timed(tmp_path):

@@ -128,7 +128,9 @@ class SMTable:
             plan, level = self.candidate(key)
             if key in self.plan_entries:
                 plain, cand, n = self.plan_totals(key, served)
-                if not (n and cand < plain * (1 - PLAN_MIN_GAIN)):
+                with_action = sum(1 for e in entries.values() if action_key(e.action, e.action_batch) == key)
+                # Used only where timed in every served combination with that action, and faster in sum.
+                if not (n and n == with_action and cand < plain * (1 - PLAN_MIN_GAIN)):
                     plan, level = None, None
                 else:
                     entries.update({e.combo: e for e in self.plan_entries[key] if e.combo in entries})
