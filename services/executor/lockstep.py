@@ -400,7 +400,6 @@ class LockstepEngine(Engine):
             if missing and not self._graphed():
                 raise RuntimeError("profiling SM levels needs CUDA graphs (engine.graphs: true)")
             levels_needed |= set(served.best_levels().values()) | set(served.action_confine.values())
-            levels_needed |= {lv for _, lv in table.timing_plans().values() if lv is not None}
             if missing:
                 levels_needed |= set(sm_levels(sm_count(self.device)))
         else:

@@ -102,8 +102,7 @@ class SMTable:
     def timing_plans(self) -> dict[str, tuple[int | None, int | None]]:
         """Action key -> (planned SMs, confined level) of the graphs ``entries`` were timed with:
         the plain graph, except for plans from tables written before ``plan_entries``."""
-        return {k: self.candidate(k) for k in set(self.action_plans) | set(self.action_confine)
-                if k not in self.plan_entries and self.candidate(k) != (None, None)}
+        return {k: v for k, v in self.plans().items() if k not in self.plan_entries and v != (None, None)}
 
     def plan_totals(self, key: str, archs: set[str]) -> tuple[float, float, int]:
         """Summed best lockstep ms over the combinations with action ``key`` among ``archs``:
@@ -121,11 +120,9 @@ class SMTable:
         entries = {e.combo: e for e in self.entries if e.vlm in served and e.action in served}
         plans: dict[str, int | None] = {}
         confine: dict[str, int] = {}
-        for key in sorted(set(self.action_plans) | set(self.action_confine)):
-            arch = key.rpartition("|")[0]
-            if arch not in served:
+        for key, (plan, level) in sorted(self.plans().items()):
+            if key.rpartition("|")[0] not in served:
                 continue
-            plan, level = self.candidate(key)
             if key in self.plan_entries:
                 plain, cand, n = self.plan_totals(key, served)
                 with_action = sum(1 for e in entries.values() if action_key(e.action, e.action_batch) == key)
