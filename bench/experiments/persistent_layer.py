@@ -63,7 +63,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspa
 from shared.models import build_model, fused, layers  # noqa: E402
 from shared.models.fused import _combine_rows, _qkv_pairs_store  # noqa: E402
 
-from timing import replay_ms  # noqa: E402  (this folder)
+from timing import alternating_ms, replay_ms, route_expert_layers  # noqa: E402  (this folder)
 
 OUT = os.environ.get("OUT", "/tmp")
 _ON_GPU = tl.constexpr(os.environ.get("TRITON_INTERPRET", "0") != "1")  # the CPU interpreter has no inline asm
@@ -440,19 +440,7 @@ def layer_persistent(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: Persi
 
 
 MODE = {"persistent": False, "state": None}
-_ORIG = layers.DecoderLayer.forward_fused
-
-
-def _forward_fused(self, x, k_out, v_out, rope, bias, k_all, v_all, ws):
-    if not MODE["persistent"]:
-        return _ORIG(self, x, k_out, v_out, rope, bias, k_all, v_all, ws)
-    st = getattr(ws, "_pk", None)
-    if st is None:
-        st = ws._pk = MODE["state"] = PersistentState(x.device)
-    return layer_persistent(self, x, k_out, v_out, rope, bias, k_all, v_all, st)
-
-
-layers.DecoderLayer.forward_fused = _forward_fused
+route_expert_layers(MODE, "persistent", PersistentState, layer_persistent)
 
 
 def pct(xs, q):
@@ -660,19 +648,7 @@ def run(arch, batch, iters):
                                                CFG["grid"] or fused._sm_count(dev))
         CFG.clear()
         CFG.update(base)
-        times = {n: [] for n in graphs}
-        for _ in range(5):
-            for gr, _ in graphs.values():
-                gr.replay()
-        torch.cuda.synchronize()
-        for _ in range(iters):
-            for n, (gr, _) in graphs.items():
-                a, e = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-                a.record()
-                gr.replay()
-                e.record()
-                e.synchronize()
-                times[n].append(a.elapsed_time(e))
+        times = alternating_ms({n: gr for n, (gr, _) in graphs.items()}, iters)
         corun = (corun_times(model, images, state, tokens, graphs, iters, int(os.environ.get("CORUN_SMS", "64")))
                  if os.environ.get("CORUN") else {})
         small = None

@@ -39,3 +39,41 @@ def replay_pair_ms(first: torch.cuda.CUDAGraph, second: torch.cuda.CUDAGraph, re
     torch.cuda.synchronize()
     return ([a.elapsed_time(b) for a, b, _ in ev], [b.elapsed_time(c) for _, b, c in ev],
             [a.elapsed_time(c) for a, _, c in ev])
+
+
+def alternating_ms(graphs: dict, reps: int, warmup: int = 5) -> dict:
+    """Per graph name, milliseconds of each of ``reps`` replays; the graphs are replayed in
+    turn on the current stream, each replay synchronised, after ``warmup`` untimed rounds."""
+    for _ in range(warmup):
+        for graph in graphs.values():
+            graph.replay()
+    torch.cuda.synchronize()
+    times = {name: [] for name in graphs}
+    for _ in range(reps):
+        for name, graph in graphs.items():
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            graph.replay()
+            end.record()
+            end.synchronize()
+            times[name].append(start.elapsed_time(end))
+    return times
+
+
+def route_expert_layers(mode: dict, key: str, make_state, layer_fn) -> None:
+    """Send ``DecoderLayer.forward_fused`` (the action stages' layer path) to ``layer_fn`` while
+    ``mode[key]`` is true. One state per stage call, made by ``make_state(device)`` and kept on
+    the call's workspace (also in ``mode["state"]``)."""
+    from shared.models import layers
+    original = layers.DecoderLayer.forward_fused
+
+    def forward_fused(self, x, k_out, v_out, rope, bias, k_all, v_all, ws):
+        if not mode[key]:
+            return original(self, x, k_out, v_out, rope, bias, k_all, v_all, ws)
+        state = getattr(ws, "_" + key, None)
+        if state is None:
+            state = mode["state"] = make_state(x.device)
+            setattr(ws, "_" + key, state)
+        return layer_fn(self, x, k_out, v_out, rope, bias, k_all, v_all, state)
+
+    layers.DecoderLayer.forward_fused = forward_fused
