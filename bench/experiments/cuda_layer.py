@@ -35,9 +35,9 @@ import time
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-from shared.models import build_model, layers  # noqa: E402
+from shared.models import build_model, fused, layers  # noqa: E402
 
-from timing import alternating_ms, route_expert_layers  # noqa: E402  (this folder)
+from timing import alternating_ms, pct, route_expert_layers  # noqa: E402  (this folder)
 
 OUT = os.environ.get("OUT", "/tmp")
 SRC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "cuda_layer.cu")
@@ -184,7 +184,7 @@ def layer_cuda(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: CudaState):
     assert cos.stride(2) == 1 and cos.dtype == torch.float32 and sin.stride() == cos.stride()
     assert k_out.stride(3) == 1 and k_all.stride(3) == 1 and bias.stride(3) == 1
     args = (ctypes.c_void_p * 1)(ctypes.addressof(p))
-    grid = torch.cuda.get_device_properties(dev).multi_processor_count
+    grid = fused._sm_count(dev)
     stream = driver.CUstream(torch.cuda.current_stream(dev).cuda_stream)
     _check((driver.cuLaunchKernel(fn, grid, 1, 1, THREADS, 1, 1, SMEM, stream, ctypes.addressof(args), 0)[0], None),
            "cuLaunchKernel")
@@ -193,11 +193,6 @@ def layer_cuda(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: CudaState):
 
 MODE = {"cuda": False, "stamps": False, "state": None}
 route_expert_layers(MODE, "cuda", lambda device: CudaState(device, MODE["stamps"]), layer_cuda)
-
-
-def pct(xs, q):
-    xs = sorted(xs)
-    return xs[min(len(xs) - 1, int(q * len(xs)))]
 
 
 def check_layer(model, hand) -> dict:
@@ -317,7 +312,7 @@ def run(iters: int) -> dict:
                 ws_state.append(MODE["state"])
             MODE["cuda"] = MODE["stamps"] = False
             st = ws_state[-1]
-            res["phases_us"] = stamp_profile(st.stamps, torch.cuda.get_device_properties(dev).multi_processor_count)
+            res["phases_us"] = stamp_profile(st.stamps, fused._sm_count(dev))
     return res
 
 

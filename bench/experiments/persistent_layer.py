@@ -63,7 +63,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspa
 from shared.models import build_model, fused, layers  # noqa: E402
 from shared.models.fused import _combine_rows, _qkv_pairs_store  # noqa: E402
 
-from timing import alternating_ms, replay_ms, route_expert_layers  # noqa: E402  (this folder)
+from timing import alternating_ms, pct, replay_ms, route_expert_layers  # noqa: E402  (this folder)
 
 OUT = os.environ.get("OUT", "/tmp")
 _ON_GPU = tl.constexpr(os.environ.get("TRITON_INTERPRET", "0") != "1")  # the CPU interpreter has no inline asm
@@ -441,11 +441,6 @@ def layer_persistent(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: Persi
 
 MODE = {"persistent": False, "state": None}
 route_expert_layers(MODE, "persistent", PersistentState, layer_persistent)
-
-
-def pct(xs, q):
-    xs = sorted(xs)
-    return xs[min(len(xs) - 1, int(q * len(xs)))]
 
 
 VARIANTS = {"main": None}  # name -> CFG overrides (None: main's kernels); main() adds a sweep's

@@ -4,6 +4,12 @@ from __future__ import annotations
 import torch
 
 
+def pct(xs: list[float], q: float) -> float:
+    """The ``q`` quantile of ``xs`` as the sample at index ``int(q * n)`` of the sorted values."""
+    xs = sorted(xs)
+    return xs[min(len(xs) - 1, int(q * len(xs)))]
+
+
 def replay_ms(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream, reps: int, warmup: int = 5) -> list[float]:
     """Milliseconds of each of ``reps`` replays of ``graph`` on ``stream``, after ``warmup``
     untimed ones; each replay is synchronised, so none overlaps the next."""
