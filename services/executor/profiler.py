@@ -370,7 +370,7 @@ def plan_actions(by_arch: dict, runner, levels: list[Level], combos: list[Combo]
         def timed(level: Level) -> float:
             if bar is not None:
                 bar.update()
-            return time_lockstep(runner, by_arch[aa], ab, ast, ab, level, repeats, warmup)
+            return time_lockstep(runner, ast, ab, ast, ab, level, repeats, warmup)
 
         def retime(combo: Combo) -> ProfileEntry:
             return time_entry(runner, by_arch, combo, levels, repeats, warmup, bar)
