@@ -2,26 +2,27 @@
 
 The kernel (cuda_layer.cu, beside this file) is built at run time by NVRTC for the layer's
 dimensions and launched through the CUDA driver on PyTorch's current stream, so it is captured
-into the action stage's CUDA graph like any other kernel. What it changes against the Triton
-persistent kernel (persistent_layer.py): every A operand is read once per unit into shared
-memory (the Triton phases re-read it from L2 per K step), the RMSNorms run on that shared
-tile (no folded weight copies), the gate/up weights stream through a 6-stage cp.async ring,
-and the attention units are (64 query rows) x (48 keys) with the merge a phase of its own.
+into the action stage's CUDA graph like any other kernel. What it does that the Triton
+persistent kernel (persistent_layer.py) cannot: every A operand is read once per unit into
+shared memory, and a producer warp streams all of the CTA's weight chunks for the launch
+through a ring of shared-memory slots with bulk copies on mbarriers, running ahead across the
+grid barriers. The RMSNorm weights are folded into copies of the QKV and gate/up weights
+(``folded_weights``) and 1/rms scales the GEMM output rows; the rows' sums of squares come from
+the phase that wrote the tile (o for x1, down for the next layer's x).
 
-    OUT=/tmp ITERS=50 STAMPS=1 python bench/experiments/cuda_layer.py   # layer check, stage timing, phases
+    OUT=/tmp OUT_NAME=kernel_exp_cuda_layer_v2_h100.json ITERS=50 STAMPS=1 TRITON=1 \
+        python bench/experiments/cuda_layer.py                                # check, timing, phases
     LAYER_ONLY=1 ncu -k regex:layer_step -c 1 --section SpeedOfLight --section WarpStateStats \
         python bench/experiments/cuda_layer.py                               # one launch under Nsight Compute
 
-Prints a table last and writes kernel_exp_cuda_layer_h100.json under OUT. STAMPS=1 adds
-``%globaltimer`` stamps per CTA at each phase's loads-done and end.
+Prints a table last and writes the JSON under OUT. STAMPS=1 adds ``%globaltimer`` stamps per
+CTA at each phase's loads-done and end, and inside the attention unit. TRITON=1 times the Triton
+persistent kernel's record configuration in the same process as a third variant.
 
-Result on an H100 (docs/RESULTS.md, model zoo, "A persistent CUDA C++ kernel per layer-step,
-first version"): correct (6.0e-3 relative to main over the whole stage, graph replay equal to
-eager), but slower: pi0's action stage takes 11.73 ms against main's 9.11 at batch 1, 62 us per
-layer-step against about 50. Nsight Compute shows why: about 10,000 instructions per warp and
-layer-step at 11 cycles each, with DRAM 14% busy. Eight warps per SM issue every 16-byte
-cp.async and every norm element themselves, so the kernel is bound by instruction issue and
-latency, not by bytes.
+Result on an H100 (docs/RESULTS.md, model zoo, "The persistent CUDA C++ kernel, second
+version"): correct (6.3e-3 relative to main over the whole stage, graph replay equal to eager),
+47.8 us per layer-step against 62.8 for the first version; the action stage takes 9.19 ms
+against main's 9.08 and the Triton persistent kernel's 7.53 at batch 1.
 """
 from __future__ import annotations
 
@@ -41,14 +42,14 @@ from timing import alternating_ms, pct, route_expert_layers  # noqa: E402  (this
 
 OUT = os.environ.get("OUT", "/tmp")
 SRC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "cuda_layer.cu")
-SMEM = 229376 + 512
-THREADS = 256
+SMEM = 232448 - 1024  # the most an H100 CTA may opt into, less 1 KB of static shared memory
+THREADS = 288  # 8 consumer warps + 1 producer warp
 
 
 class _Params(ctypes.Structure):
     _fields_ = ([(n, ctypes.c_void_p) for n in (
         "x", "wqkv", "g1", "cos", "sin", "q", "k_out", "v_out", "k_all", "v_all", "bias", "apart", "aml", "attn",
-        "wo", "part", "x1", "g2", "wgu", "h", "wd", "out", "cnt", "bar", "stamps")]
+        "wo", "part", "x1", "g2", "wgu", "h", "wd", "out", "cnt", "bar", "stamps", "ss_in", "ss_mid", "ss_out", "wqkv_next")]
         + [(n, ctypes.c_longlong) for n in (
             "cos_sb", "cos_ss", "k_sb", "k_ss", "v_sb", "v_ss", "ka_sb", "ka_ss", "va_sb", "va_ss", "b_sb", "b_sm")]
         + [("eps", ctypes.c_float), ("scale", ctypes.c_float)])
@@ -133,10 +134,31 @@ class CudaState:
         self.bar = torch.zeros(2, dtype=torch.int32, device=device)
         self.buffers: dict[tuple, dict] = {}
         self.stamps = [] if stamps else None
+        # Row sums of squares per 64-column tile, left by one launch's down phase for the next
+        # layer's norm; valid only when that next layer follows on the same output.
+        self.ss_x = torch.zeros(64 * 64, dtype=torch.float32, device=device)
+        self.ss_mid = torch.zeros(64 * 64, dtype=torch.float32, device=device)
+        self.prev: tuple | None = None  # (layer index, output pointer) of the last launch
 
 
 def _ptr(t):
     return t.data_ptr()
+
+
+_FOLDED: dict[int, tuple] = {}
+
+
+def folded_weights(layer) -> tuple:
+    """The QKV and gate/up weights with the RMSNorm weights multiplied into their columns
+    (the kernel applies only 1 / rms, to the GEMM's output rows). Made once per layer: 396 MB
+    for pi0's expert, beside the model's own weights, which stay untouched."""
+    key = id(layer)
+    if key not in _FOLDED:
+        with torch.no_grad():
+            qkv = (layer.attn.qkv.weight.float() * layer.attn_norm.weight.float()[None, :]).to(torch.bfloat16)
+            gu = (layer.mlp.gate_up.weight.float() * layer.mlp_norm.weight.float()[None, :]).to(torch.bfloat16)
+        _FOLDED[key] = (qkv.contiguous(), gu.contiguous())
+    return _FOLDED[key]
 
 
 def layer_cuda(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: CudaState):
@@ -171,12 +193,18 @@ def layer_cuda(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: CudaState):
     if st.stamps is not None:
         stamps = torch.zeros(256 * 16, dtype=torch.int64, device=dev)
         st.stamps.append(stamps)
+    wqkv, wgu = folded_weights(layer)
+    index = LAYER_INDEX.get(id(layer), -1)
+    chained = index > 0 and st.prev == (index - 1, xc.data_ptr())
+    assert w // 64 * 64 <= st.ss_x.numel()
     p = _Params(
-        _ptr(xc), _ptr(at.qkv.weight), _ptr(layer.attn_norm.weight), _ptr(cos), _ptr(sin), _ptr(buf["q"]),
+        _ptr(xc), _ptr(wqkv), _ptr(layer.attn_norm.weight), _ptr(cos), _ptr(sin), _ptr(buf["q"]),
         _ptr(k_out), _ptr(v_out), _ptr(k_all), _ptr(v_all), _ptr(bias), _ptr(buf["apart"]), _ptr(buf["aml"]),
         _ptr(buf["attn"]), _ptr(at.o.weight), _ptr(buf["part"]), _ptr(buf["x1"]), _ptr(layer.mlp_norm.weight),
-        _ptr(layer.mlp.gate_up.weight), _ptr(buf["h"]), _ptr(layer.mlp.down.weight), _ptr(out), _ptr(st.cnt),
+        _ptr(wgu), _ptr(buf["h"]), _ptr(layer.mlp.down.weight), _ptr(out), _ptr(st.cnt),
         _ptr(st.bar), stamps.data_ptr() if stamps is not None else 0,
+        _ptr(st.ss_x) if chained else 0, _ptr(st.ss_mid), _ptr(st.ss_x),
+        _ptr(folded_weights(LAYERS[(index + 1) % len(LAYERS)])[0]) if index >= 0 else 0,
         cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), k_out.stride(0), k_out.stride(2),
         v_out.stride(0), v_out.stride(2), k_all.stride(0), k_all.stride(2), v_all.stride(0), v_all.stride(2),
         bias.stride(0) if bias.shape[0] > 1 else 0, bias.stride(2) if bias.shape[2] > 1 else 0,
@@ -188,7 +216,12 @@ def layer_cuda(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: CudaState):
     stream = driver.CUstream(torch.cuda.current_stream(dev).cuda_stream)
     _check((driver.cuLaunchKernel(fn, grid, 1, 1, THREADS, 1, 1, SMEM, stream, ctypes.addressof(args), 0)[0], None),
            "cuLaunchKernel")
+    st.prev = (index, out.data_ptr())
     return out
+
+
+LAYER_INDEX: dict[int, int] = {}  # id(expert layer) -> its index, so a launch knows its predecessor
+LAYERS: list = []  # the expert layers in order, so a launch can prefetch its successor's weights
 
 
 MODE = {"cuda": False, "stamps": False, "state": None}
@@ -240,7 +273,7 @@ PHASE_ENDS = {"qkv": 2, "attention": 4, "merge": 5, "o": 7, "gate_up": 10, "down
 def stamp_profile(stamps: list, grid: int) -> dict:
     """Per layer launch: each phase's end at its latest CTA (since the previous phase's latest end),
     and per sub-step the mean over the CTAs that stamped it (us, mean over launches)."""
-    ts = torch.stack([t.view(256, 16)[:grid, :len(STAMP_NAMES)] for t in stamps]).double().cpu()
+    ts = torch.stack([t.view(256, 16)[:grid] for t in stamps]).double().cpu()
     start = ts[:, :, 0].min(1).values
     out = {}
     prev = torch.zeros_like(start)
@@ -256,12 +289,22 @@ def stamp_profile(stamps: list, grid: int) -> dict:
         if ok.any():
             sub[f"{STAMP_NAMES[i - 1]}->{STAMP_NAMES[i]}"] = float(((b - a)[ok]).mean() / 1e3)
     out["sub_steps_mean_cta"] = sub
+    attn = {}  # inside the attention unit: loads, QK^T, softmax, PV, stores
+    marks = [("attn_loaded", 3), ("qk", 13), ("softmax", 14), ("pv", 15), ("attn_end", 4)]
+    for (na, ia), (nb, ib) in zip(marks, marks[1:]):
+        a, b = ts[:, :, ia], ts[:, :, ib]
+        ok = (a > 0) & (b > 0)
+        if ok.any():
+            attn[f"{na}->{nb}"] = float(((b - a)[ok]).mean() / 1e3)
+    out["attention_mean_cta"] = attn
     return out
 
 
 def run(iters: int) -> dict:
     dev = torch.device("cuda")
     model = build_model("pi0", "full", device=dev, seed=0)
+    LAYER_INDEX.update({id(layer): i for i, layer in enumerate(model.expert.layers)})
+    LAYERS.extend(model.expert.layers)
     with torch.no_grad():  # random norm weights, so the norms on the shared tiles are exercised
         g = torch.Generator(device="cpu").manual_seed(7)
         for mod in model.modules():
@@ -281,9 +324,18 @@ def run(iters: int) -> dict:
             return res
         graphs, outs = {}, {}
         pool = torch.cuda.graph_pool_handle()
-        for name, use in (("main", False), ("cuda", True)):
+        variants = [("main", False), ("cuda", True)]
+        triton_mode = None
+        if os.environ.get("TRITON"):  # the Triton persistent kernel's record, in the same process
+            import persistent_layer  # its layer hook wraps this one's: off, it passes on to ours
+            persistent_layer.CFG.update(dict(persistent_layer.RECORD, timing=False))
+            triton_mode = persistent_layer.MODE
+            variants.append(("triton", False))
+        for name, use in variants:
             MODE["cuda"] = use
             MODE["stamps"] = False
+            if triton_mode is not None:
+                triton_mode["persistent"] = name == "triton"
             eager = model.action_stage(hand, noise)
             eager = model.action_stage(hand, noise)
             torch.cuda.synchronize()
@@ -295,6 +347,8 @@ def run(iters: int) -> dict:
             graphs[name] = gr
             outs[name] = (eager.float().clone(), out.float().clone())
         MODE["cuda"] = False
+        if triton_mode is not None:
+            triton_mode["persistent"] = False
         times = alternating_ms(graphs, iters)
         main_out = outs["main"][1]
         for n in graphs:
@@ -326,7 +380,7 @@ def main():
         json.dump(res, fh, indent=1)
     print(f"\npi0 action stage, batch 1, {iters} replays each, alternating ({res['gpu']})")
     print(f"{'variant':8s} {'p50 ms':>8s} {'p99 ms':>8s} {'rel err vs main':>16s} {'graph-eager':>12s}")
-    for n in ("main", "cuda"):
+    for n in [v for v in ("main", "cuda", "triton") if v in res]:
         r = res[n]
         print(f"{n:8s} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} {r['rel_err_vs_main']:16.2e} {r['graph_vs_eager_max_abs']:12.2e}")
     if "phases_us" in res:
@@ -334,6 +388,7 @@ def main():
         print("phases (us per layer-step, latest CTA):",
               {k: round(v, 2) for k, v in ph.items() if not isinstance(v, dict)})
         print("sub-steps (us, mean CTA):", {k: round(v, 2) for k, v in ph["sub_steps_mean_cta"].items()})
+        print("attention unit (us, mean CTA):", {k: round(v, 2) for k, v in ph["attention_mean_cta"].items()})
 
 
 if __name__ == "__main__":
