@@ -195,8 +195,10 @@ class MonolithicEngine(Engine):
         self._index += 1
 
     def finish(self) -> None:
-        super().finish()
-        self.telemetry.close()
+        try:
+            super().finish()
+        finally:
+            self.telemetry.close()  # never raises: the file is best-effort
 
 
 def _sync(device: torch.device) -> None:

@@ -337,6 +337,7 @@ class LockstepEngine(Engine):
         self._last_end = 0.0
         self._back_to_back = False
         self._expected: dict[tuple[str, str, int], float] = {}  # EMA of stage times (ms) by (arch, stage, batch)
+        self._account_failed = False  # a lockstep's timings could not be recorded (logged once)
         # Noise is drawn when a request is submitted (seeded, per model, in arrival order), so
         # drawing it costs the lockstep loop nothing and prestaging copies it with the observations.
 
@@ -743,20 +744,41 @@ class LockstepEngine(Engine):
         return cur.gpu_start + ms * 1e-3
 
     def _prestage(self) -> None:
-        model, reqs = self.queues.peek(self.cfg.max_batch)
-        if reqs:
-            self.stages[model].prestage(len(reqs), reqs)
+        # Only an optimisation (``stage`` copies again when it missed): a failure here must not
+        # lose the lockstep just issued, which ``_step`` holds only in a local until its end.
+        try:
+            model, reqs = self.queues.peek(self.cfg.max_batch)
+            if reqs:
+                self.stages[model].prestage(len(reqs), reqs)
+        except Exception:
+            log.exception("prestaging the next batch failed")
 
     def _book(self) -> None:
+        """Replies of the last finished lockstep, then its timings and telemetry. Never raises:
+        it runs while the next lockstep is in flight, which an exception here would lose."""
         done, self._last = self._last, None
         if done is None:
             return
         act = done.act
         if act is not None:
-            out = act.stages.result(act.b, done.slot).copy()
-            self._emit([Result(r, actions=out[i], admitted=act.admitted, vlm_s=act.vlm_end - act.admitted,
-                               action_s=done.end - act.vlm_end, done=done.end, lockstep=act.lockstep)
-                        for i, r in enumerate(act.requests)])
+            try:
+                out = act.stages.result(act.b, done.slot).copy()
+            except Exception as exc:
+                self._fail([act], exc)
+            else:
+                self._emit([Result(r, actions=out[i], admitted=act.admitted, vlm_s=act.vlm_end - act.admitted,
+                                   action_s=done.end - act.vlm_end, done=done.end, lockstep=act.lockstep)
+                            for i, r in enumerate(act.requests)])
+        try:
+            self._account(done)
+        except Exception:  # statistics only; log the first failure, not one per lockstep
+            if not self._account_failed:
+                log.exception("recording lockstep %d's timings failed", done.index)
+            self._account_failed = True
+
+    def _account(self, done: _Launched) -> None:
+        """A finished lockstep's timings into the EMAs (launch-ahead, stage order) and telemetry."""
+        act = done.act
         t = self.runner.measure(done.index, done.after_previous)
         vlm = done.vlm
         for batch, stage, ms in ((vlm, "vlm", t.vlm_ms), (act, "action", t.action_ms)):
@@ -774,6 +796,13 @@ class LockstepEngine(Engine):
             action_ms=t.action_ms, cpu_gap_us=done.cpu_gap_us, gpu_gap_us=t.gap_us, gpu_gap_last_us=t.gap_last_us,
             launch_us=done.launch_us, ahead=done.ahead, lead_us=done.lead_us,
             admit_early_us=done.admit_early_us, slack_us=done.slack_us, wake_late_us=done.wake_late_us))
+
+    def _report_expired(self, expired: list[Request]) -> None:
+        # Through ``_emit``: a failing sink must not raise into ``_step`` between a lockstep's
+        # launch and its end (that lockstep's batches would go unanswered).
+        if expired:
+            self._emit([Result(r, error=(ErrorCode.DEADLINE_EXCEEDED, "deadline passed while queued"))
+                        for r in expired])
 
     def _emit(self, results: list[Result]) -> None:
         try:
@@ -793,9 +822,11 @@ class LockstepEngine(Engine):
                 self._step(admit=False)
         except Exception:
             log.exception("could not complete the last batch at shutdown")
-        self._book()
-        super().finish()
-        self.telemetry.close()
+        try:
+            self._book()
+            super().finish()
+        finally:
+            self.telemetry.close()
 
 
 @dataclass

@@ -82,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     log.info("serving %s with the %s engine (ready in %.1f s)", sorted(hosted.models), cfg.engine.kind, took)
     try:
         transport.run(stop)
+        # Out of routing first, engine second: stopping the engine while the router still
+        # routes here would fail requests a healthy replica could serve.
+        transport.withdraw()
     finally:
         slot.stop()
         transport.drain()

@@ -67,27 +67,54 @@ class LockstepRecord:
 
 
 class Telemetry:
-    """A ring buffer of the latest lockstep records, optionally mirrored to a JSONL file."""
+    """A ring buffer of the latest lockstep records, optionally mirrored to a JSONL file.
+
+    The file is best-effort: it must never cost a request its reply nor stop the engine, so
+    a file that cannot be opened or written (disk full, file closed under us) is logged once
+    and dropped, and the ring buffer (what the metrics read) carries on.
+    """
 
     def __init__(self, capacity: int = 4096, path: str | Path | None = None):
         self._ring: deque[LockstepRecord] = deque(maxlen=capacity)
         self._lock = threading.Lock()
         self._file: IO[str] | None = None
+        self._path: Path | None = None
+        self.file_failed = False  # the file was dropped after an error
         self.count = 0
         if path:
             self.open(path)
 
     def open(self, path: str | Path) -> None:
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = path.open("a", buffering=1)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = path.open("a", buffering=1)
+            self._path = path
+        except OSError as exc:
+            self._path = path
+            self._drop_file(exc)
 
     def add(self, rec: LockstepRecord) -> None:
         with self._lock:
             self._ring.append(rec)
             self.count += 1
         if self._file is not None:
-            self._file.write(json.dumps(dataclasses.asdict(rec)) + "\n")
+            try:
+                self._file.write(json.dumps(dataclasses.asdict(rec)) + "\n")
+            except (OSError, ValueError) as exc:  # ValueError: the file was closed
+                self._drop_file(exc)
+
+    def _drop_file(self, exc: Exception) -> None:
+        """Stop mirroring to the file: one warning, then the ring buffer alone."""
+        f, self._file = self._file, None
+        if not self.file_failed:
+            log.warning("telemetry file %s failed (%s); no longer writing it (serving carries on)", self._path, exc)
+        self.file_failed = True
+        if f is not None:
+            try:
+                f.close()  # flushes what is buffered: may fail again for the same reason
+            except (OSError, ValueError):
+                pass
 
     def records(self) -> list[LockstepRecord]:
         with self._lock:
@@ -98,9 +125,13 @@ class Telemetry:
             self._ring.clear()
 
     def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+        """Close the file; never raises (it runs in the engine's shutdown, after the last replies)."""
+        f, self._file = self._file, None
+        if f is not None:
+            try:
+                f.close()
+            except (OSError, ValueError) as exc:
+                log.warning("closing telemetry file %s failed: %s", self._path, exc)
 
     def summary(self) -> dict:
         return summarize(self.records())

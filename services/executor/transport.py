@@ -61,6 +61,14 @@ def reply_frames(res: Result, now: float) -> list:
 
 
 class ExecutorIO:
+    # withdraw(): wait for the drain's answer, for the router to fetch the new table, for the
+    # requests accepted to be answered (all bounded: a container gets ~10 s after SIGTERM),
+    # and how long no request may arrive before the engine is stopped.
+    WITHDRAW_REPLY_S = 1.0
+    WITHDRAW_ACK_S = 3.0
+    WITHDRAW_ANSWER_S = 5.0
+    WITHDRAW_QUIET_S = 0.25
+
     def __init__(self, name: str, cfg: ClusterConfig, device: str, store: ModelStore, slot: EngineSlot,
                  hosted: Hosted, metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None,
                  limits: dict[str, int] | None = None):
@@ -74,6 +82,11 @@ class ExecutorIO:
         self.in_flight = 0  # requests handed to the engine and not yet answered (I/O thread only)
         self._reload: threading.Thread | None = None
         self._reregister = threading.Event()
+        self._poller: zmq.Poller | None = None
+        self._last_beat = 0.0
+        self._leaving = False  # withdraw() has begun: no re-registration, no reloads
+        self._ctl_replies: list[dict] = []  # control-plane answers withdraw() waits for
+        self._last_request = 0.0  # monotonic time of the last request taken from the router
         self._telemetry = None
         self._last_lockstep = -1
         self._sm_count = 0
@@ -108,7 +121,10 @@ class ExecutorIO:
         """Called on the engine thread: hand results over and wake the I/O thread."""
         self.results.put(results)
         with self._wake_lock:
-            self.wake_tx.send(b"", zmq.NOBLOCK)
+            try:
+                self.wake_tx.send(b"", zmq.NOBLOCK)
+            except zmq.Again:  # the wake-up pipe is full: the I/O thread has wake-ups pending anyway
+                pass
 
     def register(self) -> None:
         self.ctl.send(control.pack("register", executor=self.name, device=self.device,
@@ -117,48 +133,120 @@ class ExecutorIO:
         self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name)])
 
     def run(self, stop: threading.Event) -> None:
-        poller = zmq.Poller()
+        """Serve until ``stop``; the caller then calls ``withdraw`` before stopping the engine."""
+        self._poller = zmq.Poller()
         for s in (self.backend, self.ctl, self.wake_rx):
-            poller.register(s, zmq.POLLIN)
+            self._poller.register(s, zmq.POLLIN)
         self.register()
-        last_beat = time.monotonic()
+        self._last_beat = time.monotonic()
         while not stop.is_set():
-            ready = dict(poller.poll(50))
-            if self.wake_rx in ready:
-                while True:
-                    try:
-                        self.wake_rx.recv(zmq.NOBLOCK)
-                    except zmq.Again:
-                        break
-            self._send_results()
-            if self.backend in ready:
-                for _ in range(256):
-                    try:
-                        frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
-                    except zmq.Again:
-                        break
-                    self._on_request(frames)
-            if self.ctl in ready:
-                while True:
-                    try:
-                        msg = control.unpack(self.ctl.recv(zmq.NOBLOCK))
-                    except zmq.Again:
-                        break
-                    except ProtocolError:
-                        continue
-                    if msg.get("kind") == "reregister":
-                        self.register()
-                    elif msg.get("kind") == "load":
-                        self._start_reload(msg)
-            if self._reregister.is_set():
-                self._reregister.clear()
-                self.register()
-            now = time.monotonic()
-            if now - last_beat >= self.cfg.control.heartbeat_s:
-                last_beat = now
-                depths = self.slot.depths()
-                self.ctl.send(control.pack("heartbeat", executor=self.name, depths=depths))
-                self._update_gauges(depths)
+            self._serve_once()
+
+    def _serve_once(self, timeout_ms: int = 50) -> None:
+        """One turn of the I/O loop: results out, requests in, control messages, heartbeat."""
+        ready = dict(self._poller.poll(timeout_ms))
+        if self.wake_rx in ready:
+            while True:
+                try:
+                    self.wake_rx.recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+        self._send_results()
+        if self.backend in ready:
+            for _ in range(256):
+                try:
+                    frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    break
+                self._on_request(frames)
+        if self.ctl in ready:
+            while True:
+                try:
+                    msg = control.unpack(self.ctl.recv(zmq.NOBLOCK))
+                except zmq.Again:
+                    break
+                except ProtocolError:
+                    continue
+                kind = msg.get("kind")
+                if self._leaving:
+                    # Answers to withdraw()'s requests; a control plane that lost us must not
+                    # route to us again (reregister) nor move models here (load) while we leave.
+                    if kind in ("ok", "error", "status"):
+                        self._ctl_replies.append(msg)
+                elif kind == "reregister":
+                    self.register()
+                elif kind == "load":
+                    self._start_reload(msg)
+        if self._reregister.is_set() and not self._leaving:
+            self._reregister.clear()
+            self.register()
+        now = time.monotonic()
+        if now - self._last_beat >= self.cfg.control.heartbeat_s:
+            self._last_beat = now
+            depths = self.slot.depths()
+            self.ctl.send(control.pack("heartbeat", executor=self.name, depths=depths))
+            self._update_gauges(depths)
+
+    def _ctl_reply(self, kinds: tuple[str, ...], timeout_s: float) -> dict | None:
+        """Serve (requests and results keep flowing) until a control-plane reply of ``kinds`` arrives."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            for i, msg in enumerate(self._ctl_replies):
+                if msg.get("kind") in kinds:
+                    del self._ctl_replies[: i + 1]
+                    return msg
+            self._serve_once(20)
+        return None
+
+    def withdraw(self, ack_timeout_s: float | None = None, answer_timeout_s: float | None = None) -> None:
+        """On shutdown, before the engine stops: leave routing without failing a request.
+
+        1. Drain ourselves on the control plane (as `robion ctl drain` does): the new table
+           routes nothing new here but still lists us, so the router passes our replies on.
+        2. Keep serving until the router has fetched that table (the control plane reports
+           the version the router polls with), so requests it sent before are all accepted.
+        3. Keep serving until every accepted request is answered and nothing new came for
+           ``WITHDRAW_QUIET_S`` (a request forwarded just before the switch may still be in
+           transit).
+        Every wait is bounded (the control plane or router may already be gone); whatever the
+        engine still holds afterwards is answered by its ``finish``, and ``close`` deregisters.
+        """
+        ack_timeout_s = self.WITHDRAW_ACK_S if ack_timeout_s is None else ack_timeout_s
+        answer_timeout_s = self.WITHDRAW_ANSWER_S if answer_timeout_s is None else answer_timeout_s
+        if self._poller is None:  # never served: nothing can be in flight
+            return
+        t0 = time.monotonic()
+        self._leaving = True
+        self._ctl_replies.clear()
+        self.ctl.send(control.pack("drain", executor=self.name))
+        reply = self._ctl_reply(("ok", "error"), min(self.WITHDRAW_REPLY_S, ack_timeout_s))
+        if reply is None:
+            log.warning("control plane did not answer our drain: leaving without waiting for the router")
+        elif reply.get("kind") == "error":
+            log.info("control plane does not list us (%s): no routes to withdraw", reply.get("message"))
+        else:
+            version = int(reply.get("version", 0))
+            end = t0 + ack_timeout_s
+            acked = False
+            while not acked and time.monotonic() < end:
+                self.ctl.send(control.pack("status"))
+                status = self._ctl_reply(("status",), min(0.5, max(0.0, end - time.monotonic())))
+                router = (status or {}).get("status", {}).get("router", {})
+                acked = int(router.get("version", -1)) >= version
+                if not acked:
+                    self._serve_once(50)
+            if acked:
+                log.info("withdrawn from routing (table v%d) in %.2f s", version, time.monotonic() - t0)
+            else:
+                log.warning("router did not pick up table v%d within %.1f s; stopping anyway", version, ack_timeout_s)
+        end = time.monotonic() + answer_timeout_s
+        while time.monotonic() < end:
+            if self.in_flight <= 0 and time.monotonic() - self._last_request >= self.WITHDRAW_QUIET_S:
+                break
+            self._serve_once(20)
+        if self.in_flight > 0:
+            log.warning("%d requests still in flight after %.1f s; the engine answers them as it stops",
+                        self.in_flight, answer_timeout_s)
 
     def _start_reload(self, msg: dict) -> None:
         if self._reload is not None and self._reload.is_alive():
@@ -260,7 +348,7 @@ class ExecutorIO:
                 self.metrics.observe_batch(model, size)
 
     def _on_request(self, frames: list[zmq.Frame]) -> None:
-        arrival = time.monotonic()
+        arrival = self._last_request = time.monotonic()
         if len(frames) < 2:
             return
         envelope = frames[0].bytes
