@@ -97,7 +97,11 @@ class RobotClient:
 
     def poll(self, timeout_s: float = 0.0) -> list[Completion]:
         """Completions that arrived within ``timeout_s`` (0: only those already here)."""
-        out: list[Completion] = []
+        # A blocking call (infer, ping, metadata) reads every reply off the shared socket while it waits
+        # for its own and keeps the others in _done; they are this poll's results, returned first. With
+        # any in hand, poll only gathers what else is already here and does not wait.
+        out = list(self._done.values())
+        self._done.clear()
         deadline = time.monotonic() + timeout_s
         while True:
             wait_ms = max(0, int((deadline - time.monotonic()) * 1000)) if not out else 0
@@ -108,7 +112,12 @@ class RobotClient:
                 out.append(done)
 
     def pending(self) -> int:
-        return len(self._pending)
+        """Submitted requests whose outcome ``poll`` has not returned yet.
+
+        Outcomes a blocking call already read off the socket are counted until ``poll`` returns them, so
+        ``while client.pending(): client.poll(...)`` never stops with results left behind.
+        """
+        return len(self._pending) + len(self._done)
 
     # -- blocking API
 
@@ -173,7 +182,7 @@ class RobotClient:
                 raise RequestTimeout(rid, timeout_s)
             done = self._receive_one()
             if done is not None:
-                self._done[done.request_id] = done
+                self._done[done.request_id] = done  # another request's outcome: poll returns it
         return self._done.pop(rid)
 
     def _receive_one(self) -> Completion | None:
@@ -208,8 +217,12 @@ def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[Rob
     for c in clients:
         poller.register(c.socket, zmq.POLLIN)
         by_socket[c.socket] = c
+    # A client may hold outcomes that a blocking call of it read off the socket already: the socket
+    # need not be readable for those, and they are ready now, so do not wait for anything else.
+    ready = [c for c in clients if c._done]
+    events = poller.poll(0 if ready else max(0, int(timeout_s * 1000)))
+    ready += [by_socket[sock] for sock, _ in events if not by_socket[sock]._done]
     out: list[tuple[RobotClient, Completion]] = []
-    for sock, _ in poller.poll(max(0, int(timeout_s * 1000))):
-        client = by_socket[sock]
+    for client in ready:
         out.extend((client, c) for c in client.poll(0))
     return out

@@ -368,7 +368,14 @@ def _expand_placement(data: Any) -> Any:
         raise ConfigError("executors: expected a list of mappings (or gpus: N)")
     executors = [dict(e) for e in executors]
     data["executors"] = executors
-    names = [m.get("name") for m in models]
+    # The shorthands copy model names into the executors' lists before the models themselves are
+    # checked, so a missing or non-string name must be reported here, with its path, not as a KeyError.
+    for i, m in enumerate(models):
+        if "name" not in m:
+            raise ConfigError(f"models[{i}].name: missing")
+        if not isinstance(m["name"], str):
+            raise ConfigError(f"models[{i}].name: expected a string")
+    names = [m["name"] for m in models]
     if placement is None:
         return data
     if any(e.get("models") for e in executors):
@@ -383,6 +390,8 @@ def _expand_placement(data: Any) -> Any:
     if isinstance(groups, dict):  # {arch: number of GPUs}, assigned in order
         spec, start = [], 0
         for arch, count in groups.items():
+            if not isinstance(arch, str):
+                raise ConfigError(f"placement.groups.{arch}: expected an architecture name")
             if isinstance(count, bool) or not isinstance(count, int) or count < 1:
                 raise ConfigError(f"placement.groups.{arch}: expected a positive number of GPUs")
             spec.append({"arch": arch, "gpus": list(range(start, start + count))})
@@ -396,6 +405,8 @@ def _expand_placement(data: Any) -> Any:
         if not isinstance(group, dict) or set(group) != {"arch", "gpus"}:
             raise ConfigError(f"{path}: expected {{arch, gpus}}")
         arch, idx = group["arch"], group["gpus"]
+        if not isinstance(arch, str):  # it becomes a set member and a dict key below
+            raise ConfigError(f"{path}.arch: expected an architecture name")
         if not isinstance(idx, list) or not idx:
             raise ConfigError(f"{path}.gpus: the group is empty")
         members = [m["name"] for m in models if m.get("arch") == arch]

@@ -132,3 +132,29 @@ def test_placement_must_fit_device_memory():
     assert "but it has 16.0 GiB" in str(e.value)
     data["executors"][1]["memory_gb"] = 24
     config_from_dict(data)
+
+
+@pytest.mark.parametrize("data,message", [
+    # The reviewer's file: the groups shorthand copied model names before any check saw them (KeyError).
+    ({"models": [{"arch": "toy"}], "gpus": 1, "placement": {"groups": {"toy": 1}}}, "models[0].name: missing"),
+    ({"models": [{"arch": "toy"}], "gpus": 1, "placement": "mix"}, "models[0].name: missing"),
+    ({"models": [{"name": 5, "arch": "toy"}], "gpus": 1, "placement": {"groups": {"toy": 1}}},
+     "models[0].name: expected a string"),
+    ({"models": [{"name": "a", "arch": ["toy"]}], "gpus": 1, "placement": {"groups": [{"arch": ["toy"], "gpus": [0]}]}},
+     "placement.groups[0].arch: expected an architecture name"),
+    ({"models": [{"name": "a", "arch": "toy"}], "gpus": 1, "placement": {"groups": {1: 1}}},
+     "placement.groups.1: expected an architecture name"),
+])
+def test_placement_shorthand_mistakes_name_their_path(data, message):
+    with pytest.raises(ConfigError) as e:
+        config_from_dict(data)
+    assert str(e.value).startswith(message), str(e.value)
+
+
+def test_cli_reports_a_nameless_grouped_model_without_traceback(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("models:\n  - {arch: toy}\ngpus: 1\nplacement: {groups: {toy: 1}}\n")
+    out = subprocess.run([sys.executable, "-m", "shared.cli", "up", "-c", str(path)], capture_output=True, text=True,
+                         cwd=ROOT, timeout=60)
+    assert out.returncode == 2, out.stderr
+    assert "models[0].name: missing" in out.stderr and "Traceback" not in out.stderr

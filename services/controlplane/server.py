@@ -78,6 +78,19 @@ class ControlPlane:
         self.sock.send_multipart([peer, control.pack(kind, **fields)])
 
     def _admin(self, peer: bytes, kind: str, msg: dict) -> None:
+        """An operator's apply, drain or resume: always answered, so `robion ctl` never waits in vain.
+
+        A failure that the checks below do not foresee is logged with its traceback and sent back as an
+        error (the CLI prints it and exits 1); the control plane keeps serving.
+        """
+        try:
+            self._admin_request(peer, kind, msg)
+        except Exception as exc:
+            log.exception("%s failed", kind)
+            self._reply(peer, "error", message=f"{kind} failed on the control plane: {type(exc).__name__}: {exc} "
+                        "(see the control plane's log)")
+
+    def _admin_request(self, peer: bytes, kind: str, msg: dict) -> None:
         st = self.state
         if kind == "apply":
             if self.rollout is not None and not self.rollout.finished:

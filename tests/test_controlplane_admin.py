@@ -1,0 +1,61 @@
+"""The control plane's admin API answers every `apply`, even one that fails in an unforeseen way."""
+
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import yaml
+
+import services.controlplane.server as server
+from shared.cluster import control_request, control_status
+from shared.config import load_config
+from tests.helpers import cluster_config
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture
+def plane(tmp_path):
+    """A real control plane on a loopback socket, in a thread (apply needs no router or executors)."""
+    path, data = cluster_config(tmp_path)
+    cp = server.ControlPlane(load_config(path))
+    stop = threading.Event()
+    t = threading.Thread(target=cp.run, args=(stop,), daemon=True)
+    t.start()
+    yield path, data
+    stop.set()
+    t.join(10)
+
+
+def ctl(path, *args):
+    return subprocess.run([sys.executable, "-m", "shared.cli", "ctl", *args, "-c", str(path)], capture_output=True,
+                          text=True, cwd=ROOT, timeout=60)
+
+
+def test_apply_of_a_nameless_grouped_model_is_answered(plane, tmp_path):
+    path, _ = plane
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("models:\n  - {arch: toy}\ngpus: 1\nplacement: {groups: {toy: 1}}\n")
+    res = ctl(path, "apply", str(bad))
+    assert res.returncode == 1, res.stdout
+    assert "robion ctl apply: config error: models[0].name: missing" in res.stderr, res.stderr
+    assert control_status(load_config(path).control.bind, timeout_s=5) is not None
+
+
+def test_unexpected_apply_failure_is_answered_and_the_plane_keeps_serving(plane, monkeypatch):
+    path, data = plane
+    address = load_config(path).control.bind
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("planner exploded")
+
+    monkeypatch.setattr(server, "plan_steps", broken)
+    reply = control_request(address, "apply", timeout_s=10, config=yaml.safe_dump(data))
+    assert reply is not None and reply["kind"] == "error"
+    assert "apply failed on the control plane: RuntimeError: planner exploded" in reply["message"]
+    monkeypatch.undo()
+    assert control_status(address, timeout_s=5)["rollout"] is None  # nothing was half-applied
+    reply = control_request(address, "apply", timeout_s=10, config=yaml.safe_dump(data))
+    assert reply is not None and reply["kind"] == "applied", reply
