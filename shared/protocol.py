@@ -22,6 +22,11 @@ PROTOCOL_VERSION = 1
 INLINE_ARRAY_BYTES = 1024  # arrays up to this size travel inside the header
 MAX_HEADER_BYTES = 64 * 1024
 MAX_ARRAY_DIMS = 8
+MAX_MAP_LEN = 1024  # entries in any one header map, so also the most cameras a request can name
+MAX_ID_CHARS = 256  # a longer string id is refused, never cut: the echo must be the id that was sent
+# The most frames any valid message has: an infer request's header, one frame per camera image
+# (the images map holds at most MAX_MAP_LEN) and one for the state. See max_frames() per kind.
+MAX_FRAMES = 1 + MAX_MAP_LEN + 1
 ALLOWED_DTYPES = frozenset({"uint8", "int8", "int32", "int64", "float16", "float32", "float64", "bool"})
 
 
@@ -46,6 +51,7 @@ class ProtocolError(Exception):
 
 
 Frame = bytes | memoryview
+RequestId = str | int  # echoed with its wire type: 7 and "7" are two different requests
 
 
 # ----------------------------------------------------------------------------- arrays
@@ -142,7 +148,7 @@ class Timings:
 
 @dataclass
 class InferRequest:
-    id: str
+    id: RequestId
     robot: str
     model: str
     images: dict[str, np.ndarray]  # camera name -> uint8 [H, W, 3]
@@ -152,7 +158,7 @@ class InferRequest:
 
 @dataclass
 class InferReply:
-    id: str
+    id: RequestId
     model: str
     actions: np.ndarray  # float32 [horizon, action_dim]
     timings: Timings = field(default_factory=Timings)
@@ -160,31 +166,31 @@ class InferReply:
 
 @dataclass
 class ErrorReply:
-    id: str
+    id: RequestId
     code: ErrorCode
     message: str
 
 
 @dataclass
 class Hello:
-    id: str
+    id: RequestId
 
 
 @dataclass
 class Metadata:
-    id: str
+    id: RequestId
     models: dict[str, ModelInfo]
     protocol: int = PROTOCOL_VERSION
 
 
 @dataclass
 class Ping:
-    id: str
+    id: RequestId
 
 
 @dataclass
 class Pong:
-    id: str
+    id: RequestId
 
 
 Message = InferRequest | InferReply | ErrorReply | Hello | Metadata | Ping | Pong
@@ -201,7 +207,7 @@ def unpack_header(frame: Frame) -> dict[str, Any]:
     try:
         header = msgpack.unpackb(frame, raw=False, strict_map_key=True,
                                  max_str_len=MAX_HEADER_BYTES, max_bin_len=MAX_HEADER_BYTES,
-                                 max_array_len=4096, max_map_len=1024, max_ext_len=0)
+                                 max_array_len=4096, max_map_len=MAX_MAP_LEN, max_ext_len=0)
     except Exception as exc:  # msgpack raises several unrelated types on garbage
         raise ProtocolError(ErrorCode.BAD_REQUEST, f"header is not valid msgpack ({type(exc).__name__})") from None
     if not isinstance(header, dict):
@@ -209,12 +215,52 @@ def unpack_header(frame: Frame) -> dict[str, Any]:
     return header
 
 
-def header_id(header: dict[str, Any]) -> str:
-    """The request id as a string, or "" when absent or unusable (errors still get a reply)."""
+def valid_id(rid: Any) -> bool:
+    """A str of at most MAX_ID_CHARS characters or an int; msgpack true/false is not an int here."""
+    if isinstance(rid, str):
+        return len(rid) <= MAX_ID_CHARS
+    return isinstance(rid, int) and not isinstance(rid, bool)
+
+
+def header_id(header: dict[str, Any]) -> RequestId:
+    """The request id exactly as sent, or "" when absent or unusable (errors still get a reply)."""
     rid = header.get("id", "")
-    if isinstance(rid, (str, int)) and not isinstance(rid, bool):
-        return str(rid)[:256]
-    return ""
+    return rid if valid_id(rid) else ""
+
+
+def check_header(header: dict[str, Any]) -> RequestId:
+    """Check what every message kind shares, ``v`` and ``id``; returns the id.
+
+    ``v`` must be exactly the int 1: True compares equal to 1 in Python but is msgpack's
+    true, which no client means as a version.
+    """
+    version = header.get("v", PROTOCOL_VERSION)
+    if type(version) is not int or version != PROTOCOL_VERSION:
+        raise ProtocolError(ErrorCode.BAD_REQUEST,
+                            f"v: protocol version {version!r} is not supported (this server speaks {PROTOCOL_VERSION})")
+    rid = header.get("id", "")
+    if not valid_id(rid):
+        raise ProtocolError(ErrorCode.BAD_REQUEST,
+                            f"id: expected a str of at most {MAX_ID_CHARS} characters or an int, got "
+                            f"{type(rid).__name__}{f' of {len(rid)} characters' if isinstance(rid, str) else ''}")
+    return rid
+
+
+def max_frames(kind: Any, cameras: int | None = None) -> int:
+    """The most frames a valid message of ``kind`` can have: the header plus one per array it carries.
+
+    Arrays sit only where a kind defines them (an infer request's camera images and state, a
+    reply's actions), and each may also travel inline, so this is an upper bound. With the
+    model's camera count known the bound for a request is exact; without it, the images map
+    is still capped at MAX_MAP_LEN entries by the header decoder.
+    """
+    if kind == "infer":
+        return 1 + (MAX_MAP_LEN if cameras is None else cameras) + 1
+    if kind == "reply":
+        return 2
+    if kind in ("hello", "metadata", "error", "ping", "pong"):
+        return 1
+    return MAX_FRAMES  # an unknown kind is refused on its own account
 
 
 def encode(msg: Message) -> list[Frame]:
@@ -264,11 +310,8 @@ def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Mes
         raise ProtocolError(ErrorCode.BAD_REQUEST, "empty message")
     if header is None:
         header = unpack_header(frames[0])
-    version = header.get("v", PROTOCOL_VERSION)
-    if version != PROTOCOL_VERSION:
-        raise ProtocolError(ErrorCode.BAD_REQUEST, f"v: protocol version {version!r} is not supported (this server speaks {PROTOCOL_VERSION})")
+    rid = check_header(header)
     kind = _field(header, "kind", str)
-    rid = header_id(header)
     used: set[int] = set()
     msg: Message
     if kind == "infer":
@@ -319,7 +362,7 @@ def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Mes
     return msg
 
 
-def error_frames(request_id: str, code: ErrorCode, message: str) -> list[Frame]:
+def error_frames(request_id: RequestId, code: ErrorCode, message: str) -> list[Frame]:
     return encode(ErrorReply(id=request_id, code=code, message=message[:1024]))
 
 

@@ -32,6 +32,9 @@ class ClusterState:
         self.router_version = -1
         self.quotas = Quotas({}, {})
         self.measured_limits: dict[str, int] = {}  # robot limits reported by executors
+        # The latest description of each model an executor registered; it outlives that
+        # executor, so a configured model stays describable while no host serves it.
+        self.described: dict[str, ModelInfo] = {}
 
     @property
     def timeout_s(self) -> float:
@@ -40,6 +43,7 @@ class ClusterState:
     def register(self, name: str, device: str, models: dict[str, ModelInfo], now: float | None = None,
                  limits: dict[str, int] | None = None) -> None:
         self.measured_limits.update(limits or {})
+        self.described.update(models)
         old = self.executors.get(name)
         self.executors[name] = ExecutorState(name, device, models, now or time.monotonic(),
                                              draining=old.draining if old else False)
@@ -95,6 +99,18 @@ class ClusterState:
                 for model, info in ex.models.items():
                     models.setdefault(model, info)
                     routes.setdefault(model, []).append(name)
+        # Every configured model stays in the table while no live, non-draining executor hosts it
+        # (drained, crashed, not registered yet), with no route: the router then answers
+        # UNAVAILABLE ("retry") rather than UNKNOWN_MODEL ("never retry"), and hello still lists
+        # it. Its description is the last one an executor registered; a model no executor has
+        # described yet cannot be listed in `models`, so it is published as an empty route.
+        for mc in self.cfg.models:
+            if mc.name in models:
+                continue
+            if mc.name in self.described:
+                models[mc.name] = self.described[mc.name]
+            else:
+                routes[mc.name] = []
         # Draining executors stay listed: the router answers their requests in flight normally.
         executors = sorted(self.executors)
         if not force and (models, routes, executors) == (self.table.models, self.table.routes, self.table.executors):

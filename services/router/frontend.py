@@ -19,13 +19,22 @@ from shared import control
 from shared.config import ClusterConfig, dial_address
 from shared.control import RoutingTable
 from shared.metrics import RouterMetrics, serve
-from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, encode, error_frames, header_id,
-                             message_bytes, unpack_header)
+from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode, error_frames,
+                             header_id, max_frames, message_bytes, unpack_header)
 
 log = logging.getLogger("robion.router")
 
 MAX_IN_FLIGHT = 65536
 TABLE_POLL_S = 0.1
+WARN_EVERY_S = 5.0  # refusals a peer can trigger at will are logged at most this often, with a count
+
+# A request in flight: (robot, id type, id). The id keeps its wire type, so 7 and "7" from one
+# robot are two requests; the type is in the key so that stays true whatever the ids compare as.
+FlightKey = tuple[bytes, type, RequestId]
+
+
+def flight_key(robot: bytes, rid: RequestId) -> FlightKey:
+    return (robot, type(rid), rid)
 
 
 @dataclass
@@ -35,37 +44,61 @@ class InFlight:
     sent_at: float
 
 
+@dataclass
+class RateLimitedWarning:
+    """One kind of warning a sender can provoke at will: logged once per WARN_EVERY_S, with a count."""
+
+    last: float = float("-inf")
+    count: int = 0
+
+    def warn(self, message: str, *args: object) -> None:
+        self.count += 1
+        now = time.monotonic()
+        if now - self.last >= WARN_EVERY_S:
+            log.warning(message + " (%d such since the last report)", *args, self.count)
+            self.last, self.count = now, 0
+
+
 class Router:
     def __init__(self, cfg: ClusterConfig, context: zmq.Context | None = None):
         self.cfg = cfg
         self.ctx = context or zmq.Context.instance()
         self.routing = Routing()
-        self.in_flight: dict[tuple[bytes, str], InFlight] = {}
+        self.in_flight: dict[FlightKey, InFlight] = {}
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
         self.metrics = RouterMetrics()
         serve(self.metrics.registry, cfg.router.metrics_port)
         limit = cfg.router.max_message_bytes
 
         self.frontend = self.ctx.socket(zmq.ROUTER)
-        # Frames far beyond the limit are refused by libzmq itself (the peer is disconnected)
-        # so a hostile sender cannot make the router buffer gigabytes; anything up to twice
-        # the limit is read and answered with TOO_LARGE.
+        # ZMQ_MAXMSGSIZE bounds each *frame*, not the message: a single frame far beyond the
+        # limit makes libzmq drop the peer's connection, but libzmq has no cap on the number of
+        # frames, so a whole message is only measured after it has been received. Whole
+        # messages over the limit, and messages with more frames than their kind can carry,
+        # are refused here (TOO_LARGE / BAD_REQUEST) once read; docs/protocol.md says the same.
         self.frontend.setsockopt(zmq.MAXMSGSIZE, 2 * limit + 65536)
         self.frontend.setsockopt(zmq.LINGER, 0)
         self.frontend.setsockopt(zmq.ROUTER_HANDOVER, 1)  # a reconnecting robot keeps its identity
         self.frontend.bind(cfg.router.bind)
 
         self.backend = self.ctx.socket(zmq.ROUTER)
-        self.backend.setsockopt(zmq.ROUTER_MANDATORY, 1)  # unreachable executor -> error, not a silent drop
+        # Unreachable executor -> EHOSTUNREACH, full pipe -> EAGAIN (sends are NOBLOCK): an error
+        # we answer, never a silent drop and never a blocked loop.
+        self.backend.setsockopt(zmq.ROUTER_MANDATORY, 1)
         self.backend.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.backend.setsockopt(zmq.LINGER, 0)
         self.backend.bind(cfg.router.backend)
 
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.LINGER, 0)
+        # Queue polls only to a connected control plane: with it down, a DEALER would queue up to
+        # its high-water mark and then block the loop; with IMMEDIATE and NOBLOCK a poll is skipped.
+        self.ctl.setsockopt(zmq.IMMEDIATE, 1)
         self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
         self._last_table_poll = 0.0
         self._last_sweep = 0.0
+        self._too_many_frames = RateLimitedWarning()
+        self._executor_full = RateLimitedWarning()
 
     # ------------------------------------------------------------------ loop
 
@@ -77,7 +110,11 @@ class Router:
             now = time.monotonic()
             if now - self._last_table_poll >= TABLE_POLL_S:
                 self._last_table_poll = now
-                self.ctl.send(control.pack("table_get", version=self.routing.table.version, role="router"))
+                try:
+                    self.ctl.send(control.pack("table_get", version=self.routing.table.version, role="router"),
+                                  zmq.NOBLOCK)
+                except zmq.Again:
+                    pass  # control plane unreachable or not reading: the next poll asks again
             if now - self._last_sweep >= 0.1:
                 self._last_sweep = now
                 self._expire(now)
@@ -105,7 +142,7 @@ class Router:
 
     # ------------------------------------------------------------------ robots
 
-    def _reply_error(self, robot: bytes, rid: str, code: ErrorCode, message: str, model: str = "") -> None:
+    def _reply_error(self, robot: bytes, rid: RequestId, code: ErrorCode, message: str, model: str = "") -> None:
         self.stats["errors"] += 1
         # Only served model names become label values: robots cannot grow the series count.
         self.metrics.requests.labels(model if self.routing.knows(model) else "", code.value.lower()).inc()
@@ -116,16 +153,30 @@ class Router:
         body = frames[1:]
         if not body:
             return self._reply_error(robot, "", ErrorCode.BAD_REQUEST, "empty message")
-        size = message_bytes([f.buffer for f in body])
         try:
             header = unpack_header(body[0].buffer)
         except ProtocolError as exc:
             return self._reply_error(robot, "", exc.code, exc.message)
-        rid = header_id(header)
+        rid = header_id(header)  # "" when unusable: the refusal below still reaches the robot
+        try:
+            check_header(header)  # v and id, for every kind
+        except ProtocolError as exc:
+            return self._reply_error(robot, rid, exc.code, exc.message)
+        kind = header.get("kind")
+        model = header.get("model")
+        info = self.routing.table.models.get(model) if kind == "infer" and isinstance(model, str) else None
+        most = max_frames(kind, len(info.cameras) if info is not None else None)
+        if len(body) > most:
+            # libzmq cannot cap frames per message (see __init__), so this is where a message
+            # made of many frames, each under the transport's per-frame limit, is refused.
+            self._too_many_frames.warn("refused a %r message of %d frames from robot %r (at most %d)",
+                                       kind, len(body), robot, most)
+            return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST,
+                                     f"message has {len(body)} frames; a {kind!r} message has at most {most}")
+        size = message_bytes([f.buffer for f in body])
         if size > self.cfg.router.max_message_bytes:
             return self._reply_error(robot, rid, ErrorCode.TOO_LARGE,
                                      f"message is {size} bytes; the limit is {self.cfg.router.max_message_bytes}")
-        kind = header.get("kind")
         if kind == "hello":
             table = self.routing.table
             self.frontend.send_multipart([robot, *encode(Metadata(id=rid, models=table.models))], copy=False)
@@ -135,22 +186,27 @@ class Router:
             return
         if kind != "infer":
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, f"kind: unknown message kind {kind!r}")
-        model = header.get("model")
         if not isinstance(model, str):
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, "model: expected str")
-        if not rid:
+        if rid == "":
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, "id: expected a non-empty str or int")
         if not self.routing.knows(model):
             return self._reply_error(robot, rid, ErrorCode.UNKNOWN_MODEL, f"model {model!r} is not served")
-        key = (robot, rid)
+        key = flight_key(robot, rid)
         if key in self.in_flight:
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, f"id: request {rid!r} is already in flight")
         if len(self.in_flight) >= MAX_IN_FLIGHT:
             return self._reply_error(robot, rid, ErrorCode.OVERLOADED, "too many requests in flight")
         self.stats["requests"] += 1
+        full: list[str] = []
         for executor in self.routing.candidates(model, robot):
             try:
-                self.backend.send_multipart([executor.encode(), robot, *body], copy=False)
+                # NOBLOCK: an executor that stops reading (stalled, stopped, swamped) fills its pipe,
+                # and a blocking send would freeze this one loop for every robot and table update.
+                self.backend.send_multipart([executor.encode(), robot, *body], flags=zmq.NOBLOCK, copy=False)
+            except zmq.Again:  # its pipe is at the high-water mark: it is not keeping up
+                full.append(executor)
+                continue
             except zmq.ZMQError as exc:
                 if exc.errno == zmq.EHOSTUNREACH:  # registered but not connected to us (yet / any more)
                     continue
@@ -158,6 +214,11 @@ class Router:
             self.in_flight[key] = InFlight(executor, model, time.monotonic())
             self.metrics.in_flight.set(len(self.in_flight))
             return
+        if full:
+            # A host exists but is not taking requests: "retry later", the executor-queue-full answer.
+            self._executor_full.warn("executors %s for %r are not reading (queue at the router full)", full, model)
+            return self._reply_error(robot, rid, ErrorCode.OVERLOADED,
+                                     f"the executors for {model!r} are not taking requests (queue full)", model)
         self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"no executor for {model!r} is reachable", model)
 
     # ------------------------------------------------------------------ executors
@@ -175,7 +236,7 @@ class Router:
             log.warning("executor %s sent an undecodable reply header", frames[0].bytes)
             return
         rid = header_id(header)
-        flight = self.in_flight.pop((robot, rid), None)
+        flight = self.in_flight.pop(flight_key(robot, rid), None)
         if flight is None:
             return  # already answered (timed out or executor declared gone): one answer per request
         self.stats["replies"] += 1
@@ -189,15 +250,17 @@ class Router:
     def _expire(self, now: float) -> None:
         timeout = self.cfg.router.request_timeout_s
         stale = [k for k, f in self.in_flight.items() if now - f.sent_at > timeout]
-        for robot, rid in stale:
-            f = self.in_flight.pop((robot, rid))
+        for key in stale:
+            f = self.in_flight.pop(key)
+            robot, _, rid = key
             self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {f.executor} did not answer within {timeout} s",
                               f.model)
 
     def _fail_executor(self, executor: str) -> None:
         lost = [k for k, f in self.in_flight.items() if f.executor == executor]
-        for robot, rid in lost:
-            f = self.in_flight.pop((robot, rid))
+        for key in lost:
+            f = self.in_flight.pop(key)
+            robot, _, rid = key
             self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {executor} went away", f.model)
         if lost:
             log.warning("executor %s left the routing table with %d requests in flight", executor, len(lost))

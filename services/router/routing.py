@@ -73,4 +73,9 @@ class Routing:
         return sum(n / limits.get(m, 1) for (m, e), n in self.assigned.items() if e == executor)
 
     def knows(self, model: str) -> bool:
-        return model in self.table.models
+        """A model the cluster serves, whether or not an executor hosts it right now.
+
+        The control plane lists every configured model in ``models`` (or, before any executor
+        described it, as an empty route); one without executors is unavailable, not unknown.
+        """
+        return model in self.table.models or model in self.table.routes

@@ -1,0 +1,349 @@
+"""The router against peers that misbehave: a stalled executor, many-frame messages, odd ids and
+versions, and models with no executor right now.
+
+Each test runs the real Router loop in a thread on loopback TCP sockets; the executor is a
+DEALER the test drives (it never reads, or it answers with the real protocol encoder), and the
+routing table is made by hand or by the control plane's own ClusterState.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter
+
+import msgpack
+import numpy as np
+import pytest
+import zmq
+
+from services.controlplane.state import ClusterState
+from services.router.frontend import Router
+from shared import control
+from shared.config import load_config
+from shared.control import RoutingTable
+from shared.protocol import (MAX_FRAMES, ErrorCode, ErrorReply, InferReply, InferRequest, Metadata, ModelInfo,
+                             ProtocolError, decode, encode, error_frames, header_id, pack_header)
+from tests.helpers import cluster_config
+
+INFO = ModelInfo(cameras=["cam0", "cam1"], image_shape=[64, 64, 3], state_dim=8, horizon=10, action_dim=7,
+                 deadline_ms=500.0, arch="toy")
+
+
+def infer_frames(rid, model: str = "toy-a", **header) -> list[bytes]:
+    """A valid infer request for INFO's shapes: header + two 12 KiB image frames (state inline)."""
+    rng = np.random.default_rng(0)
+    frames = [bytes(f) for f in encode(InferRequest(
+        id="x", robot="r", model=model, instruction="pick",
+        images={c: rng.integers(0, 256, INFO.image_shape, dtype=np.uint8) for c in INFO.cameras},
+        state=np.zeros(INFO.state_dim, np.float32)))]
+    h = msgpack.unpackb(frames[0])
+    h.update(id=rid, **header)
+    return [pack_header(h), *frames[1:]]
+
+
+class RouterThread:
+    """A real Router running its loop in a thread, with sockets the test uses to play robots and executors."""
+
+    def __init__(self, tmp_path, table: RoutingTable | None = None, **router_cfg):
+        path, _ = cluster_config(tmp_path)
+        cfg = load_config(path)
+        for k, v in router_cfg.items():
+            setattr(cfg.router, k, v)
+        self.cfg = cfg
+        self.ctx = zmq.Context()
+        self.router = Router(cfg, self.ctx)
+        if table is not None:
+            self.router.routing.update(table)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.router.run, args=(self.stop,), daemon=True)
+        self.socks: list[zmq.Socket] = []
+        self.peers: list[threading.Thread] = []  # answering executors, stopped before their sockets close
+        self.peers_stop = threading.Event()
+
+    def __enter__(self) -> "RouterThread":
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.peers_stop.set()
+        for t in self.peers:
+            t.join(5)
+        # Peers go first, while the router's sockets are still open. The other order, router
+        # closing while a peer drops a connection the router is half-way through sending a
+        # multipart request on, trips an assertion inside libzmq 4.3.5 (session_base.cpp,
+        # clean_pipes; zeromq/libzmq#3442) and aborts the process.
+        for s in self.socks:
+            s.close(linger=0)
+        self.stop.set()
+        self.thread.join(5)
+        assert not self.thread.is_alive(), "router loop did not stop"
+        self.ctx.term()
+
+    def robot(self, identity: bytes) -> zmq.Socket:
+        s = self.ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.IDENTITY, identity)
+        s.setsockopt(zmq.LINGER, 0)
+        s.setsockopt(zmq.SNDHWM, 0)  # the test's own sends never block or drop
+        s.setsockopt(zmq.RCVHWM, 0)
+        s.connect(self.cfg.router.bind)
+        self.socks.append(s)
+        return s
+
+    def executor(self, name: bytes, rcvhwm: int = 1000) -> zmq.Socket:
+        """A DEALER the router can route to; returns once the router has seen it connect."""
+        s = self.ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.IDENTITY, name)
+        s.setsockopt(zmq.LINGER, 0)
+        s.setsockopt(zmq.RCVHWM, rcvhwm)
+        s.connect(self.cfg.router.backend)
+        self.socks.append(s)
+        s.send(b"")  # the router ignores a one-frame message; its handshake makes the identity routable
+        time.sleep(0.2)
+        return s
+
+
+    def answering_executor(self, name: bytes, hold: int = 1) -> zmq.Socket:
+        """An executor that answers with the real protocol code: decode each request, reply with its own id.
+
+        Requests are held until ``hold`` have arrived, so that many are in flight at the router at once.
+        """
+        sock = self.executor(name)
+
+        def loop() -> None:
+            pending = []
+            while not self.peers_stop.is_set():
+                if not sock.poll(50):
+                    continue
+                robot, *body = sock.recv_multipart()
+                try:
+                    req = decode(body)
+                except ProtocolError as exc:  # as the executor does: an error reply with the request's id
+                    sock.send_multipart([robot, *error_frames(header_id(msgpack.unpackb(body[0])), exc.code,
+                                                              exc.message)])
+                    continue
+                pending.append((robot, req))
+                if len(pending) >= hold:
+                    for robot, req in reversed(pending):
+                        actions = np.zeros((INFO.horizon, INFO.action_dim), np.float32)
+                        sock.send_multipart([robot, *encode(InferReply(id=req.id, model=req.model, actions=actions))])
+                    pending = []
+
+        t = threading.Thread(target=loop, daemon=True)
+        t.start()
+        self.peers.append(t)
+        return sock
+
+def ask(sock: zmq.Socket, frames: list[bytes], timeout_s: float = 2.0):
+    sock.send_multipart(frames)
+    assert sock.poll(int(timeout_s * 1000)), f"no answer within {timeout_s} s"
+    return decode(sock.recv_multipart())
+
+
+def one_executor_table() -> RoutingTable:
+    return RoutingTable(version=1, models={"toy-a": INFO}, routes={"toy-a": ["ex0"]}, executors=["ex0"])
+
+
+# ----------------------------------------------------------------------------- 1: a stalled executor
+
+
+def test_a_stalled_executor_does_not_stall_the_router(tmp_path):
+    """ex0 never reads: once its queue is full, requests for it get OVERLOADED at once, everyone else is served."""
+    n = 5000
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=1.0) as rt:
+        rt.executor(b"ex0", rcvhwm=10)  # connected, never reads
+        flood, pinger = rt.robot(b"flood"), rt.robot(b"pinger")
+        for i in range(n):
+            flood.send_multipart(infer_frames(f"f{i}"))
+        time.sleep(0.5)  # the router is now working through the flood
+        t0 = time.monotonic()
+        pong = ask(pinger, [pack_header({"v": 1, "kind": "ping", "id": "p"})], timeout_s=1.0)
+        assert pong.id == "p" and time.monotonic() - t0 < 1.0
+        assert isinstance(ask(rt.robot(b"new"), [pack_header({"kind": "hello", "id": "h"})], 1.0), Metadata)
+
+        codes: Counter[str] = Counter()
+        ids = set()
+        end = time.monotonic() + 6  # the ones ex0's queue took expire after request_timeout_s
+        while len(ids) < n and time.monotonic() < end:
+            if flood.poll(200):
+                rep = decode(flood.recv_multipart())
+                assert isinstance(rep, ErrorReply)
+                ids.add(rep.id)
+                codes[rep.code.value] += 1
+        assert len(ids) == n, f"{n - len(ids)} flooded requests got no answer; {codes}"
+        assert codes["OVERLOADED"] > 0 and set(codes) <= {"OVERLOADED", "UNAVAILABLE"}, codes
+        # The ones that reached ex0's queue were answered when they timed out, not silently dropped.
+        assert not rt.router.in_flight
+
+
+def test_a_full_executor_falls_back_to_another(tmp_path):
+    """ex0 stops reading: once its queue is full, its share of the traffic goes to ex1, nothing is refused."""
+    table = RoutingTable(version=1, models={"toy-a": INFO}, routes={"toy-a": ["ex0", "ex1"]}, executors=["ex0", "ex1"])
+    with RouterThread(tmp_path, table) as rt:
+        rt.executor(b"ex0", rcvhwm=10)  # never reads
+        rt.answering_executor(b"ex1")
+        robot = rt.robot(b"arm")
+        n = 5000
+        for i in range(n):
+            robot.send_multipart(infer_frames(f"r{i}"))
+        got: Counter[str] = Counter()
+        while robot.poll(1000):  # until answers stop coming: the rest wait in ex0's queue (30 s timeout)
+            rep = decode(robot.recv_multipart())
+            got["ok" if isinstance(rep, InferReply) else rep.code.value] += 1
+        queued = len(rt.router.in_flight)
+        assert got["ok"] + queued == n and set(got) == {"ok"}, (got, queued)
+        assert got["ok"] > queued, (got, queued)  # ex1 took what ex0's full queue could not
+
+
+# ----------------------------------------------------------------------------- 2: no executor != unknown model
+
+
+def test_state_lists_every_configured_model_while_unhosted(tmp_path):
+    path, _ = cluster_config(tmp_path)  # ex0: toy-a, toy-b; ex1: toy-a
+    state = ClusterState(load_config(path))
+    state.replace_config(state.cfg)  # what the control plane publishes before any executor registers
+    # Nothing registered yet: no description to give, but both names are in the table.
+    assert state.table.models == {} and state.table.routes == {"toy-a": [], "toy-b": []}
+    state.register("ex0", "cpu", {"toy-a": INFO, "toy-b": INFO}, now=100.0)
+    state.register("ex1", "cpu", {"toy-a": INFO}, now=100.0)
+    assert state.table.routes == {"toy-a": ["ex0", "ex1"], "toy-b": ["ex0"]}
+    state.set_draining("ex0", True)
+    assert set(state.table.models) == {"toy-a", "toy-b"}  # toy-b has no route but is still served
+    assert state.table.routes == {"toy-a": ["ex1"]}
+    assert state.table.executors == ["ex0", "ex1"]
+    state.expire(now=100.0 + state.timeout_s + 1)  # both crash
+    assert set(state.table.models) == {"toy-a", "toy-b"} and state.table.routes == {}
+    # Only configured models are kept: an unconfigured replica's model goes when the replica goes.
+    state.register("replica-9", "cpu", {"toy-x": INFO}, now=200.0)
+    assert "toy-x" in state.table.models
+    state.deregister("replica-9")
+    assert set(state.table.models) == {"toy-a", "toy-b"}
+    # The table survives its wire form unchanged (empty routes included).
+    assert RoutingTable.from_wire(state.table.to_wire()) == state.table
+
+
+def test_router_answers_unavailable_for_a_drained_model_and_unknown_only_for_unconfigured(tmp_path):
+    with RouterThread(tmp_path) as rt:
+        state = ClusterState(rt.cfg)
+        state.register("ex0", "cpu", {"toy-a": INFO, "toy-b": INFO})
+        state.set_draining("ex0", True)
+        # Serve that table on the control plane's address, as the control plane would.
+        ctl = rt.ctx.socket(zmq.ROUTER)
+        ctl.setsockopt(zmq.LINGER, 0)
+        ctl.bind(rt.cfg.control.bind)
+        rt.socks.append(ctl)
+        assert ctl.poll(3000), "the router did not ask for the routing table"
+        peer, msg = ctl.recv_multipart()
+        assert control.unpack(msg)["kind"] == "table_get"
+        ctl.send_multipart([peer, control.pack("table", table=state.table.to_wire())])
+        robot = rt.robot(b"arm")
+        end = time.monotonic() + 3
+        while time.monotonic() < end:
+            meta = ask(robot, [pack_header({"kind": "hello", "id": "h"})])
+            if meta.models:
+                break
+            time.sleep(0.05)
+        assert set(meta.models) == {"toy-a", "toy-b"}, "a drained model must stay listed"
+        for model in ("toy-a", "toy-b"):
+            rep = ask(robot, infer_frames(f"q-{model}", model=model))
+            assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.UNAVAILABLE, rep
+        rep = ask(robot, infer_frames("q-ghost", model="ghost"))
+        assert rep.code == ErrorCode.UNKNOWN_MODEL
+
+
+def test_router_counts_an_empty_route_as_served(tmp_path):
+    """Before any executor described a configured model, the table has only its (empty) route."""
+    table = RoutingTable(version=1, models={}, routes={"toy-a": []}, executors=[])
+    with RouterThread(tmp_path, table) as rt:
+        robot = rt.robot(b"arm")
+        assert ask(robot, infer_frames("a", model="toy-a")).code == ErrorCode.UNAVAILABLE
+        assert ask(robot, infer_frames("b", model="toy-z")).code == ErrorCode.UNKNOWN_MODEL
+
+
+# ----------------------------------------------------------------------------- 3: frames per message
+
+
+def test_messages_with_more_frames_than_their_kind_carries_are_refused(tmp_path):
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        rt.answering_executor(b"ex0")
+        robot = rt.robot(b"arm")
+        many = infer_frames("many") + [b"\0" * 100] * 2000  # 224 KB in all, under the size limit: too many frames
+        rep = ask(robot, many)
+        assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.BAD_REQUEST and rep.id == "many", rep
+        assert "at most 4" in rep.message, rep  # refused by the router, not passed on to the executor
+        # Header, two cameras and a state frame is the most a toy-a request can have; one more is refused here.
+        rep = ask(robot, infer_frames("plus2") + [b"x", b"y"])
+        assert rep.code == ErrorCode.BAD_REQUEST and "at most 4" in rep.message, rep
+        rep = ask(robot, [pack_header({"kind": "ping", "id": "p2"}), b"x"])
+        assert rep.code == ErrorCode.BAD_REQUEST and rep.id == "p2"
+        # A message of an unknown kind is bounded by the protocol-wide maximum.
+        rep = ask(robot, [pack_header({"kind": "teleport", "id": "t"})] + [b""] * MAX_FRAMES)
+        assert rep.code == ErrorCode.BAD_REQUEST and "frames" in rep.message
+        # The router keeps serving: a ping and a valid request still go through.
+        assert ask(robot, [pack_header({"kind": "ping", "id": "p3"})]).id == "p3"
+        assert isinstance(ask(robot, infer_frames("ok")), InferReply)
+
+
+# ----------------------------------------------------------------------------- 4: ids and versions
+
+
+def test_ids_are_echoed_exactly_and_bad_ids_refused(tmp_path):
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        rt.answering_executor(b"ex0")
+        robot = rt.robot(b"arm")
+        rep = ask(robot, infer_frames(5))
+        assert isinstance(rep, InferReply) and rep.id == 5 and type(rep.id) is int
+        assert ask(robot, [pack_header({"kind": "ping", "id": 0})]).id == 0
+        assert ask(robot, [pack_header({"kind": "hello", "id": 2**63})]).id == 2**63
+        long_ok = "a" * 256
+        assert ask(robot, infer_frames(long_ok)).id == long_ok
+        for bad in ("a" * 300, True, 1.5, ["x"], {"a": 1}, b"raw"):
+            rep = ask(robot, infer_frames(bad))
+            assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.BAD_REQUEST and rep.id == "", (bad, rep)
+            assert rep.message.startswith("id:"), rep
+        rep = ask(robot, [pack_header({"kind": "ping", "id": "b" * 257})])
+        assert rep.code == ErrorCode.BAD_REQUEST
+
+
+def test_int_and_str_ids_with_the_same_digits_are_different_requests(tmp_path):
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        rt.answering_executor(b"ex0", hold=2)  # both are in flight together
+        robot = rt.robot(b"arm")
+        robot.send_multipart(infer_frames(7))
+        robot.send_multipart(infer_frames("7"))
+        got = []
+        for _ in range(2):
+            assert robot.poll(3000)
+            got.append(decode(robot.recv_multipart()))
+        assert all(isinstance(r, InferReply) for r in got), got
+        assert sorted((type(r.id).__name__, r.id) for r in got) == [("int", 7), ("str", "7")]
+        # A true duplicate is still refused while the first is in flight.
+        robot.send_multipart(infer_frames(8))
+        rep = ask(robot, infer_frames(8))
+        assert rep.code == ErrorCode.BAD_REQUEST and "already in flight" in rep.message and rep.id == 8
+
+
+@pytest.mark.parametrize("v", [2, 99, True, 1.0, "1", None])
+def test_a_wrong_version_is_refused_on_every_kind(tmp_path, v):
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        robot = rt.robot(b"arm")
+        for frames in ([pack_header({"v": v, "kind": "hello", "id": "h"})],
+                       [pack_header({"v": v, "kind": "ping", "id": "p"})],
+                       infer_frames("i", v=v)):
+            rep = ask(robot, frames)
+            assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.BAD_REQUEST, (v, rep)
+            assert rep.message.startswith("v:")
+        # v: 1 and no v at all are both fine.
+        assert isinstance(ask(robot, [pack_header({"v": 1, "kind": "hello", "id": "h"})]), Metadata)
+        assert ask(robot, [pack_header({"kind": "ping", "id": "p"})]).id == "p"
+
+
+def test_decode_keeps_id_types_and_checks_v_and_id():
+    frames = [bytes(f) for f in encode(InferReply(id=7, model="m", actions=np.zeros((2, 2), np.float32)))]
+    assert decode(frames).id == 7
+    assert decode(encode(ErrorReply("7", ErrorCode.INTERNAL, "x"))).id == "7"
+    for header in ({"v": True, "kind": "ping", "id": "p"}, {"v": 2, "kind": "ping", "id": "p"},
+                   {"kind": "ping", "id": False}, {"kind": "ping", "id": "x" * 257}, {"kind": "ping", "id": 1.0}):
+        with pytest.raises(ProtocolError) as e:
+            decode([pack_header(header)])
+        assert e.value.code == ErrorCode.BAD_REQUEST
