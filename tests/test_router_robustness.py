@@ -69,12 +69,13 @@ class RouterThread:
         self.peers_stop.set()
         for t in self.peers:
             t.join(5)
-        # Peers go first, while the router's sockets are still open. The other order, router
-        # closing while a peer drops a connection the router is half-way through sending a
-        # multipart request on, trips an assertion inside libzmq 4.3.5 (session_base.cpp,
-        # clean_pipes; zeromq/libzmq#3442) and aborts the process.
+        # Peers go first, and the router's I/O thread is given time to see them go while its
+        # sockets are still open. A router socket closing at the moment a peer drops a
+        # connection it is half-way through sending a multipart request on trips an assertion
+        # inside libzmq 4.3.5 (session_base.cpp, clean_pipes; zeromq/libzmq#3442).
         for s in self.socks:
             s.close(linger=0)
+        time.sleep(0.3)
         self.stop.set()
         self.thread.join(5)
         assert not self.thread.is_alive(), "router loop did not stop"
@@ -107,8 +108,9 @@ class RouterThread:
         """An executor that answers with the real protocol code: decode each request, reply with its own id.
 
         Requests are held until ``hold`` have arrived, so that many are in flight at the router at once.
+        Its receive queue is unbounded, so it never pushes back on the router however slowly it answers.
         """
-        sock = self.executor(name)
+        sock = self.executor(name, rcvhwm=0)
 
         def loop() -> None:
             pending = []
