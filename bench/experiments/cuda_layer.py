@@ -194,7 +194,7 @@ def layer_cuda(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: CudaState):
         stamps = torch.zeros(256 * 16, dtype=torch.int64, device=dev)
         st.stamps.append(stamps)
     wqkv, wgu = folded_weights(layer)
-    index = LAYER_INDEX.get(id(layer), -1)
+    index = next((i for i, known in enumerate(LAYERS) if known is layer), -1)
     chained = index > 0 and st.prev == (index - 1, xc.data_ptr())
     assert w // 64 * 64 <= st.ss_x.numel()
     p = _Params(
@@ -220,8 +220,7 @@ def layer_cuda(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: CudaState):
     return out
 
 
-LAYER_INDEX: dict[int, int] = {}  # id(expert layer) -> its index, so a launch knows its predecessor
-LAYERS: list = []  # the expert layers in order, so a launch can prefetch its successor's weights
+LAYERS: list = []  # the expert layers in order: a launch knows its predecessor and prefetches its successor
 
 
 MODE = {"cuda": False, "stamps": False, "state": None}
@@ -303,7 +302,6 @@ def stamp_profile(stamps: list, grid: int) -> dict:
 def run(iters: int) -> dict:
     dev = torch.device("cuda")
     model = build_model("pi0", "full", device=dev, seed=0)
-    LAYER_INDEX.update({id(layer): i for i, layer in enumerate(model.expert.layers)})
     LAYERS.extend(model.expert.layers)
     with torch.no_grad():  # random norm weights, so the norms on the shared tiles are exercised
         g = torch.Generator(device="cpu").manual_seed(7)

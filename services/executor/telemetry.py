@@ -85,13 +85,11 @@ class Telemetry:
             self.open(path)
 
     def open(self, path: str | Path) -> None:
-        path = Path(path)
+        path = self._path = Path(path)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             self._file = path.open("a", buffering=1)
-            self._path = path
         except OSError as exc:
-            self._path = path
             self._drop_file(exc)
 
     def add(self, rec: LockstepRecord) -> None:
