@@ -7,6 +7,7 @@ as a ConfigError, never as a traceback, and every key the file may hold is decla
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -21,11 +22,11 @@ class ConfigError(ValueError):
 
 
 def _positive(v: Any) -> bool:
-    return v > 0
+    return math.isfinite(v) and v > 0  # .inf / .nan parse as floats from YAML, and no rate or size is infinite
 
 
 def _non_negative(v: Any) -> bool:
-    return v >= 0
+    return math.isfinite(v) and v >= 0
 
 
 def _power_of_two(v: Any) -> bool:

@@ -33,6 +33,9 @@ def test_defaults():
 @pytest.mark.parametrize("mutate,message", [
     (lambda d: d["models"][1].update(slo_ms=-5), "models[1].slo_ms: expected a positive number"),
     (lambda d: d["models"][1].update(slo_ms="fast"), "models[1].slo_ms: expected a number"),
+    (lambda d: d["models"][1].update(hz=float("inf")), "models[1].hz: expected a positive number"),
+    (lambda d: d["models"][0].update(slo_ms=float("nan")), "models[0].slo_ms: expected a positive number"),
+    (lambda d: d["models"][0].update(robots=float("inf")), "models[0].robots: expected"),
     (lambda d: d["models"][0].update(colour="red"), "models[0].colour: unknown key"),
     (lambda d: d["models"][0].update(arch="gpt5"), "models[0].arch: unknown architecture 'gpt5'"),
     (lambda d: d["models"][0].update(size="huge"), "models[0].size: toy has no size 'huge'"),
