@@ -38,7 +38,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from shared.models import build_model, fused, layers  # noqa: E402
 
-from timing import alternating_ms, pct, route_expert_layers  # noqa: E402  (this folder)
+from timing import alternating_ms, capture_checked, pct, route_expert_layers  # noqa: E402  (this folder)
 
 OUT = os.environ.get("OUT", "/tmp")
 SRC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "cuda_layer.cu")
@@ -334,16 +334,7 @@ def run(iters: int) -> dict:
             MODE["stamps"] = False
             if triton_mode is not None:
                 triton_mode["persistent"] = name == "triton"
-            eager = model.action_stage(hand, noise)
-            eager = model.action_stage(hand, noise)
-            torch.cuda.synchronize()
-            gr = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(gr, pool=pool):
-                out = model.action_stage(hand, noise)
-            gr.replay()
-            torch.cuda.synchronize()
-            graphs[name] = gr
-            outs[name] = (eager.float().clone(), out.float().clone())
+            graphs[name], *outs[name] = capture_checked(lambda: model.action_stage(hand, noise), pool)
         MODE["cuda"] = False
         if triton_mode is not None:
             triton_mode["persistent"] = False

@@ -26,6 +26,20 @@ def replay_ms(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream, reps: int,
     return times
 
 
+def capture_checked(body, pool, warmup: int = 2) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
+    """``warmup`` eager calls of ``body``, then its CUDA graph captured into ``pool`` and replayed
+    once: (graph, the last eager output, the graph's output), the outputs as float copies."""
+    for _ in range(warmup):
+        eager = body()
+    torch.cuda.synchronize()
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph, pool=pool):
+        out = body()
+    graph.replay()
+    torch.cuda.synchronize()
+    return graph, eager.float().clone(), out.float().clone()
+
+
 def replay_pair_ms(first: torch.cuda.CUDAGraph, second: torch.cuda.CUDAGraph, reps: int,
                    warmup: int = 5) -> tuple[list[float], list[float], list[float]]:
     """``reps`` back-to-back replays of two graphs on the current stream (a VLM graph, then the

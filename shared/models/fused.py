@@ -21,6 +21,7 @@ conversion; the cost of the op is identical.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -56,8 +57,10 @@ def rope_ref(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Ten
     return torch.stack((x0 * c - x1 * s, x0 * s + x1 * c), dim=-1).flatten(-2).to(x.dtype)
 
 
-def _split_qkv_ref(qkv, n_q, n_kv, head_dim, cos, sin, q_norm, k_norm, eps, k_out, v_out):
+def _split_qkv_ref(qkv, n_q, n_kv, head_dim, cos, sin, q_norm, k_norm, eps, k_out, v_out, row_scale=None):
     b, s, _ = qkv.shape
+    if row_scale is not None:
+        qkv = (qkv.float() * row_scale.view(b, s, 1)).to(qkv.dtype)
     q, k, v = qkv.split([n_q * head_dim, n_kv * head_dim, n_kv * head_dim], dim=-1)
     q = q.unflatten(-1, (n_q, head_dim))
     k = k.unflatten(-1, (n_kv, head_dim))
@@ -74,7 +77,9 @@ def _split_qkv_ref(qkv, n_q, n_kv, head_dim, cos, sin, q_norm, k_norm, eps, k_ou
     return q.contiguous()
 
 
-def _gated_act_ref(x: torch.Tensor, act: str) -> torch.Tensor:
+def _gated_act_ref(x: torch.Tensor, act: str, row_scale: torch.Tensor | None = None) -> torch.Tensor:
+    if row_scale is not None:
+        x = (x.float() * row_scale.view(*x.shape[:-1], 1)).to(x.dtype)
     gate, up = x.chunk(2, dim=-1)
     gate = F.gelu(gate, approximate="tanh") if act == "gelu_tanh" else F.silu(gate)
     return gate * up
@@ -85,11 +90,21 @@ def _gated_act_ref(x: torch.Tensor, act: str) -> torch.Tensor:
 if triton is not None:
 
     @triton.jit
+    def _row_rstd(ss_ptr, row, n_tiles, rows, inv_width, eps, TILES: tl.constexpr):
+        # 1 / rms of one row from the per-column-tile sums of squares a split-K GEMM left
+        # (``RowStats``: [n_tiles, rows] fp32).
+        t = tl.arange(0, TILES)
+        ss = tl.load(ss_ptr + t * rows + row, mask=t < n_tiles, other=0.0)
+        return tl.rsqrt(tl.sum(ss, 0) * inv_width + eps)
+
+    @triton.jit
     def _split_qkv_kernel(
         qkv_ptr, cos_ptr, sin_ptr, qn_ptr, kn_ptr, q_ptr, k_ptr, v_ptr,
         S, n_q, n_kv, stride_row, cos_sb, cos_ss,
         q_sb, q_ss, q_sh, k_sb, k_ss, k_sh, v_sb, v_ss, v_sh, eps,
+        ss_ptr, n_tiles, rows, inv_width, row_eps,
         HALF: tl.constexpr, BLOCK: tl.constexpr, ROPE: tl.constexpr, QKNORM: tl.constexpr,
+        ROWSCALE: tl.constexpr, TILES: tl.constexpr,
     ):
         row = tl.program_id(0)
         head = tl.program_id(1)
@@ -100,6 +115,10 @@ if triton is not None:
         src = qkv_ptr + row * stride_row + head * 2 * HALF
         x0 = tl.load(src + 2 * i, mask=m, other=0.0).to(tl.float32)
         x1 = tl.load(src + 2 * i + 1, mask=m, other=0.0).to(tl.float32)
+        if ROWSCALE:
+            r = _row_rstd(ss_ptr, row, n_tiles, rows, inv_width, row_eps, TILES)
+            x0 = x0 * r
+            x1 = x1 * r
         if head < n_q + n_kv:
             if QKNORM:
                 r = tl.rsqrt((tl.sum(x0 * x0, 0) + tl.sum(x1 * x1, 0)) / (2 * HALF) + eps)
@@ -157,12 +176,17 @@ if triton is not None:
         tl.store(out_ptr + p * C + c, val.to(out_ptr.dtype.element_ty), mask=cm)
 
     @triton.jit
-    def _gated_act_kernel(x_ptr, out_ptr, n_cols, stride_x, stride_o, BLOCK: tl.constexpr, GELU: tl.constexpr):
+    def _gated_act_kernel(x_ptr, out_ptr, n_cols, stride_x, stride_o, ss_ptr, n_tiles, rows, inv_width, row_eps,
+                          BLOCK: tl.constexpr, GELU: tl.constexpr, ROWSCALE: tl.constexpr, TILES: tl.constexpr):
         row = tl.program_id(0)
         col = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)
         m = col < n_cols
         g = tl.load(x_ptr + row * stride_x + col, mask=m, other=0.0).to(tl.float32)
         u = tl.load(x_ptr + row * stride_x + n_cols + col, mask=m, other=0.0).to(tl.float32)
+        if ROWSCALE:
+            r = _row_rstd(ss_ptr, row, n_tiles, rows, inv_width, row_eps, TILES)
+            g = g * r
+            u = u * r
         if GELU:
             # 0.5 * (1 + tanh(z)) == sigmoid(2z)
             a = g * tl.sigmoid(1.5957691216057308 * (g + 0.044715 * g * g * g))
@@ -361,7 +385,7 @@ def split_qkv(qkv: torch.Tensor, n_q: int, n_kv: int, head_dim: int,
               k_out: torch.Tensor | None, v_out: torch.Tensor | None,
               cos: torch.Tensor | None = None, sin: torch.Tensor | None = None,
               q_norm: torch.Tensor | None = None, k_norm: torch.Tensor | None = None,
-              eps: float = 1e-6) -> torch.Tensor:
+              eps: float = 1e-6, row_stats: RowStats | None = None, row_eps: float = 1e-6) -> torch.Tensor:
     """Split ``qkv [B, S, (n_q + 2 n_kv) * head_dim]`` into heads.
 
     Returns q as a new ``[B, S, n_q, head_dim]`` tensor; k and v are written into
@@ -369,9 +393,12 @@ def split_qkv(qkv: torch.Tensor, n_q: int, n_kv: int, head_dim: int,
     ``cos``/``sin`` are ``[B or 1, S, head_dim / 2]`` fp32 (None: no RoPE); ``q_norm`` and
     ``k_norm`` are per-head RMSNorm weights (None: no QK-norm). With ``n_kv == 0`` it is
     RoPE (and norm) of a query-only projection; k_out/v_out may then be None.
+    ``row_stats``: each row is first scaled by its 1 / rms (``RowStats.rstd(row_eps)``): the
+    QKV GEMM ran on the un-normalised input with the norm weight folded into its weight.
     """
     if not triton_enabled(qkv):
-        return _split_qkv_ref(qkv, n_q, n_kv, head_dim, cos, sin, q_norm, k_norm, eps, k_out, v_out)
+        rs = row_stats.rstd(row_eps) if row_stats is not None else None
+        return _split_qkv_ref(qkv, n_q, n_kv, head_dim, cos, sin, q_norm, k_norm, eps, k_out, v_out, rs)
     b, s, width = qkv.shape
     assert width == (n_q + 2 * n_kv) * head_dim and qkv.stride(2) == 1 and qkv.stride(0) == s * qkv.stride(1)
     if n_kv == 0:
@@ -395,10 +422,23 @@ def split_qkv(qkv: torch.Tensor, n_q: int, n_kv: int, head_dim: int,
         q.stride(0), q.stride(1), q.stride(2),
         k_out.stride(0), k_out.stride(2), k_out.stride(1),
         v_out.stride(0), v_out.stride(2), v_out.stride(1), eps,
+        *_row_args(row_stats, b * s, row_eps, qkv),
         HALF=half, BLOCK=triton.next_power_of_2(half), ROPE=rope, QKNORM=qknorm,
+        ROWSCALE=row_stats is not None, TILES=_tiles(row_stats),
         num_warps=1 if half <= 64 else 2,
     )
     return q
+
+
+def _row_args(stats: RowStats | None, rows: int, eps: float, dummy: torch.Tensor) -> tuple:
+    if stats is None:
+        return dummy, 0, rows, 0.0, eps
+    assert stats.ss.shape[1] == rows and stats.ss.is_contiguous(), "row stats of another tensor"
+    return stats.ss, stats.ss.shape[0], rows, 1.0 / stats.width, eps
+
+
+def _tiles(stats: RowStats | None) -> int:
+    return triton.next_power_of_2(stats.ss.shape[0]) if stats is not None else 1
 
 
 def resize_table(table: torch.Tensor, grid: int, size: int) -> torch.Tensor:
@@ -416,16 +456,18 @@ def resize_table(table: torch.Tensor, grid: int, size: int) -> torch.Tensor:
     return out
 
 
-def gated_act(x: torch.Tensor, act: str) -> torch.Tensor:
-    """``act(gate) * up`` for ``x = [..., 2F]`` laid out as [gate | up]; act: gelu_tanh or silu."""
+def gated_act(x: torch.Tensor, act: str, row_stats: RowStats | None = None, row_eps: float = 1e-6) -> torch.Tensor:
+    """``act(gate) * up`` for ``x = [..., 2F]`` laid out as [gate | up]; act: gelu_tanh or silu.
+    ``row_stats``: gate and up are first scaled by their row's 1 / rms (see ``split_qkv``)."""
     if not triton_enabled(x):
-        return _gated_act_ref(x, act)
+        return _gated_act_ref(x, act, row_stats.rstd(row_eps) if row_stats is not None else None)
     n = x.shape[-1] // 2
     x2 = x.reshape(-1, 2 * n)
     out = torch.empty(x2.shape[0], n, device=x.device, dtype=x.dtype)
     block = min(1024, triton.next_power_of_2(n))
     _gated_act_kernel[(x2.shape[0], math.ceil(n / block))](
-        x2, out, n, x2.stride(0), out.stride(0), BLOCK=block, GELU=act == "gelu_tanh", num_warps=4)
+        x2, out, n, x2.stride(0), out.stride(0), *_row_args(row_stats, x2.shape[0], row_eps, x2),
+        BLOCK=block, GELU=act == "gelu_tanh", ROWSCALE=row_stats is not None, TILES=_tiles(row_stats), num_warps=4)
     return out.view(*x.shape[:-1], n)
 
 
@@ -454,16 +496,41 @@ def gated_act(x: torch.Tensor, act: str) -> torch.Tensor:
 # No kernel waits on another program: correct on any number of SMs (green contexts).
 
 
+@dataclass(frozen=True)
+class RowStats:
+    """Sums of squares of each row of a ``[rows, width]`` tensor, split over column tiles
+    (``ss``: ``[tiles, rows]`` fp32), as the split-K residual GEMM leaves them for the RMSNorm
+    that reads its output next."""
+
+    ss: torch.Tensor
+    width: int
+
+    def rstd(self, eps: float) -> torch.Tensor:
+        """1 / rms per row (the reference for the kernels' ``_row_rstd``)."""
+        return torch.rsqrt(self.ss.sum(0) / self.width + eps)
+
+
 class Workspace:
-    """Per-stage-call scratch: arrival counters for the single-launch split reductions."""
+    """Per-stage-call scratch: arrival counters for the single-launch split reductions, and the
+    row statistics of the last split-K output that has them."""
 
     def __init__(self, device: torch.device, size: int = 8192):
         self.size = size
         self._cnt = torch.zeros(size, dtype=torch.int32, device=device)
+        self._stats: tuple[torch.Tensor, RowStats] | None = None
 
     def counters(self, n: int) -> torch.Tensor:
         assert n <= self.size, f"workspace too small: {n} > {self.size}"
         return self._cnt
+
+    def keep_stats(self, out: torch.Tensor, stats: RowStats | None) -> None:
+        # One entry, holding ``out`` itself: its memory cannot be reused by another tensor
+        # while the entry lives, so an identity match can never pick up stale statistics.
+        self._stats = (out, stats) if stats is not None else None
+
+    def stats_of(self, x: torch.Tensor) -> RowStats | None:
+        """The row statistics of ``x`` if the split-K GEMM that wrote it left them."""
+        return self._stats[1] if self._stats is not None and self._stats[0] is x else None
 
 
 def fast_gemm_ok(x: torch.Tensor, rows: int) -> bool:
@@ -570,10 +637,10 @@ if triton is not None:
                      mask=mask)
 
     @triton.jit
-    def _gemm_res_kernel(x_ptr, w_ptr, res_ptr, bias_ptr, out_ptr, part_ptr, cnt_ptr, M, N, K, k_chunk,
+    def _gemm_res_kernel(x_ptr, w_ptr, res_ptr, bias_ptr, out_ptr, part_ptr, cnt_ptr, ss_ptr, M, N, K, k_chunk,
                          stride_x, stride_w, stride_r, stride_o,
                          HAS_BIAS: tl.constexpr, SPLIT: tl.constexpr, BM: tl.constexpr, BN: tl.constexpr,
-                         BK: tl.constexpr):
+                         BK: tl.constexpr, STATS: tl.constexpr):
         pid_m = tl.program_id(0)
         pid_n = tl.program_id(1)
         pid_s = tl.program_id(2)
@@ -604,21 +671,28 @@ if triton is not None:
                 if HAS_BIAS:
                     acc += tl.load(bias_ptr + offs_n, mask=n_ok, other=0.0).to(tl.float32)[None, :]
                 acc += tl.load(res_ptr + offs_m[:, None] * stride_r + offs_n[None, :], mask=mask, other=0.0).to(tl.float32)
-                tl.store(out_ptr + offs_m[:, None] * stride_o + offs_n[None, :], acc.to(out_ptr.dtype.element_ty),
-                         mask=mask)
+                _store_res_tile(acc, out_ptr, ss_ptr, offs_m, offs_n, m_ok, mask, pid_n, M, stride_o, STATS)
                 tl.atomic_xchg(cnt_ptr + tile, 0, sem="relaxed", scope="gpu")
         else:
             if HAS_BIAS:
                 acc += tl.load(bias_ptr + offs_n, mask=n_ok, other=0.0).to(tl.float32)[None, :]
             acc += tl.load(res_ptr + offs_m[:, None] * stride_r + offs_n[None, :], mask=mask, other=0.0).to(tl.float32)
-            tl.store(out_ptr + offs_m[:, None] * stride_o + offs_n[None, :], acc.to(out_ptr.dtype.element_ty), mask=mask)
+            _store_res_tile(acc, out_ptr, ss_ptr, offs_m, offs_n, m_ok, mask, pid_n, M, stride_o, STATS)
+
+    @triton.jit
+    def _store_res_tile(acc, out_ptr, ss_ptr, offs_m, offs_n, m_ok, mask, pid_n, M, stride_o, STATS: tl.constexpr):
+        y = acc.to(out_ptr.dtype.element_ty)
+        tl.store(out_ptr + offs_m[:, None] * stride_o + offs_n[None, :], y, mask=mask)
+        if STATS:  # the next RMSNorm's sums of squares, of the values as stored
+            yf = tl.where(mask, y.to(tl.float32), 0.0)
+            tl.store(ss_ptr + pid_n * M + offs_m, tl.sum(yf * yf, 1), mask=m_ok)
 
 
 # Tunables (the GPU bench script overrides them to compare variants).
 # (BK 64, 4 stages, 4 warps, 32-wide N tiles, about one program per SM: best of the variants
 # timed on the H100 for pi0's and SmolVLA's o / down projections, see docs/RESULTS.md.)
 GEMM_CFG = {"bk": 64, "warps": 4, "stages": 4, "target": 1.0, "res_bn": 32, "bn": None, "split": None,
-            "res_bk": None, "res_stages": None, "res_warps": None, "max_rows": 128, "min_bytes_over_64_rows": 4e6}
+            "res_bk": None, "res_stages": None, "res_warps": None, "max_rows": 128, "min_bytes_over_64_rows": 4e6, "stats_over_64_rows": True}
 
 
 def _block_m(rows: int) -> int:
@@ -726,17 +800,26 @@ def norm_qkv(x: torch.Tensor, norm_w: torch.Tensor, eps: float, weight: torch.Te
 
 
 def linear_residual_splitk(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, residual: torch.Tensor,
-                           ws: Workspace | None) -> torch.Tensor:
-    """``residual + linear(x, weight, bias)`` (bf16 out, fp32 accumulation, one launch)."""
+                           ws: Workspace | None, stats: bool = False) -> torch.Tensor:
+    """``residual + linear(x, weight, bias)`` (bf16 out, fp32 accumulation, one launch).
+
+    ``stats``: the last program of each column tile also writes its rows' sums of squares, kept
+    in ``ws`` for the output (``Workspace.stats_of``), so the RMSNorm that reads it next needs no
+    kernel of its own. Only the Triton path leaves them; on the cuBLAS path there are none."""
     n, k = weight.shape
     rows = residual.numel() // n
     # Over 64 rows the A tile re-read by every N tile costs more than the small weights save:
-    # measured slower than cuBLAS for SmolVLA at batch 2 (1.4 / 2.9 MB), faster for pi0 (4.2 / 8.4 MB).
-    big_enough = rows <= 64 or weight.numel() * weight.element_size() >= GEMM_CFG["min_bytes_over_64_rows"]
+    # measured slower than cuBLAS for SmolVLA at batch 2 (1.4 / 2.9 MB: 0.4 ms over the stage),
+    # faster for pi0 (4.2 / 8.4 MB). With row statistics wanted it pays anyway, because the norm
+    # after it then folds away: SmolVLA's stage at batch 2 is 0.55 ms faster (norm_fold_ab.py).
+    big_enough = (rows <= 64 or (stats and GEMM_CFG["stats_over_64_rows"])
+                  or weight.numel() * weight.element_size() >= GEMM_CFG["min_bytes_over_64_rows"])
     if ws is None or not fast_gemm_ok(x, rows) or rows > GEMM_CFG["max_rows"] or not big_enough:
         out = torch.addmm(residual.reshape(-1, n), x.reshape(-1, k), weight.t())
         if bias is not None:
             out += bias
+        if ws is not None:
+            ws.keep_stats(out, None)
         return out.view(residual.shape)
     x2 = x.reshape(rows, k)
     r2 = residual.reshape(rows, n)
@@ -755,10 +838,13 @@ def linear_residual_splitk(x: torch.Tensor, weight: torch.Tensor, bias: torch.Te
         cnt = ws.counters(grid_m * grid_n)
     else:
         part = cnt = out
+    ss = torch.empty(grid_n, rows, device=x.device, dtype=torch.float32) if stats else out
     _gemm_res_kernel[(grid_m, grid_n, split)](
-        x2, weight, r2, bias if bias is not None else x2, out, part, cnt, rows, n, k, chunk,
+        x2, weight, r2, bias if bias is not None else x2, out, part, cnt, ss, rows, n, k, chunk,
         x2.stride(0), weight.stride(0), r2.stride(0), out.stride(0),
-        HAS_BIAS=bias is not None, SPLIT=split, BM=bm, BN=bn, BK=bk,
+        HAS_BIAS=bias is not None, SPLIT=split, BM=bm, BN=bn, BK=bk, STATS=stats,
         num_warps=GEMM_CFG["res_warps"] or GEMM_CFG["warps"], num_stages=GEMM_CFG["res_stages"] or GEMM_CFG["stages"])
-    return out.view(residual.shape)
+    result = out.view(residual.shape)
+    ws.keep_stats(result, RowStats(ss, n) if stats else None)
+    return result
 

@@ -24,8 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from shared.models.fused import (Workspace, attention_fits, gated_act, linear_residual_splitk,  # noqa: F401
-                                 small_attention, split_qkv)
+from shared.models.fused import (RowStats, Workspace, attention_fits, gated_act,  # noqa: F401
+                                 linear_residual_splitk, small_attention, split_qkv)
 
 # --------------------------------------------------------------------------- init
 
@@ -74,6 +74,47 @@ class RMSNorm(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.rms_norm(x, (x.shape[-1],), self.weight, self.eps)
+
+
+def _version(t: torch.Tensor) -> int:
+    try:
+        return t._version
+    except RuntimeError:  # inference tensors keep no version counter
+        return -1
+
+
+def folded_weight(lin: nn.Linear, norm: RMSNorm) -> torch.Tensor:
+    """``lin.weight`` with ``norm.weight`` multiplied into its columns, so that
+    ``lin(norm(x)) == (x @ folded.T) / rms(x)`` (no bias). Made on first use and kept on ``lin``
+    beside its own parameters, which stay as they are (state dicts and the reference path see
+    the model's weights); made again if either weight is replaced or changed in place."""
+    key = (lin.weight.data_ptr(), norm.weight.data_ptr(), _version(lin.weight), _version(norm.weight))
+    cached = lin.__dict__.get("_folded")
+    if cached is None or cached[0] != key:
+        if lin.weight.is_cuda and torch.cuda.is_current_stream_capturing():
+            # A copy made inside a capture would hold its values only after the first replay.
+            raise RuntimeError("folded norm weights are made on the first eager call; run the stage once before "
+                               "capturing it")
+        with torch.no_grad():
+            w = (lin.weight.float() * norm.weight.float()[None, :]).to(lin.weight.dtype)
+        lin.__dict__["_folded"] = cached = (key, w)
+    return cached[1]
+
+
+FOLD_NORMS = True  # bench/experiments/norm_fold_ab.py turns it off to time the stages without
+
+
+def norm_linear(x: torch.Tensor, norm: RMSNorm, lin: nn.Linear,
+                ws: Workspace) -> tuple[torch.Tensor, RowStats | None]:
+    """``lin(norm(x))`` in the action stages. When the split-K GEMM that wrote ``x`` left its
+    rows' sums of squares in ``ws``, the norm's kernel is skipped: the GEMM runs on ``x`` with the
+    norm weight folded into its weight, and the returned stats carry the 1 / rms that the
+    consumer (``split_qkv`` / ``gated_act``) applies to each row. Otherwise the stats are None
+    and the product is already normalised."""
+    stats = ws.stats_of(x) if FOLD_NORMS else None
+    if stats is None or lin.bias is not None:  # a bias must not be scaled by 1 / rms
+        return lin(norm(x)), None
+    return F.linear(x, folded_weight(lin, norm)), stats
 
 
 def ada_layer_norm(x: torch.Tensor, shift: torch.Tensor, scale_plus_one: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
@@ -349,6 +390,13 @@ class DiTBlock(nn.Module):
 # --------------------------------------------------------------------------- decoder
 
 
+def fused_mlp(x: torch.Tensor, norm: RMSNorm, mlp: GatedMLP, ws: Workspace) -> torch.Tensor:
+    """``x + mlp(norm(x))`` on the action stages' fused kernels (see ``DecoderLayer.forward_fused``)."""
+    gu, stats = norm_linear(x, norm, mlp.gate_up, ws)
+    h = gated_act(gu, mlp.act, stats, norm.eps)
+    return linear_residual_splitk(h, mlp.down.weight, mlp.down.bias, x, ws, stats=FOLD_NORMS)
+
+
 class DecoderLayer(nn.Module):
     """Pre-norm decoder layer (Gemma / Llama / Qwen3): RMSNorm -> attention -> RMSNorm -> gated MLP."""
 
@@ -384,14 +432,19 @@ class DecoderLayer(nn.Module):
     def forward_fused(self, x, k_out, v_out, rope, bias, k_all, v_all, ws: Workspace) -> torch.Tensor:
         """``forward`` with the action stages' fused kernels: the attention merges its split-KV
         partials in-kernel and the o / down projections add the residual in a split-K Triton
-        GEMM (one launch each, no DtoD copy, no cuBLAS reduce kernel). Norms, QKV and gate/up
-        stay on cuBLAS (``norm_qkv`` / ``norm_gated_mlp_in`` measured slower, see fused.py)."""
-        q = self.attn.project(self.attn_norm(x), k_out, v_out, rope)
+        GEMM (one launch each, no DtoD copy, no cuBLAS reduce kernel). That GEMM also leaves its
+        rows' sums of squares, so the norm after it folds into the next cuBLAS GEMM's weight and
+        1 / rms into the QKV split or the gated activation (``norm_linear``): no norm kernels."""
+        at = self.attn
+        qkv, stats = norm_linear(x, self.attn_norm, at.qkv, ws)
+        cos, sin = rope if rope is not None else (None, None)
+        q = split_qkv(qkv, at.n_heads, at.n_kv_heads, at.head_dim, k_out, v_out, cos, sin,
+                      at.q_norm.weight if at.q_norm is not None else None,
+                      at.k_norm.weight if at.k_norm is not None else None, at.eps, stats, self.attn_norm.eps)
         k = k_out if k_all is None else k_all
         v = v_out if v_all is None else v_all
-        x = linear_residual_splitk(attention(q, k, v, bias, ws), self.attn.o.weight, self.attn.o.bias, x, ws)
-        h = gated_act(self.mlp.gate_up(self.mlp_norm(x)), self.mlp.act)
-        return linear_residual_splitk(h, self.mlp.down.weight, self.mlp.down.bias, x, ws)
+        x = linear_residual_splitk(attention(q, k, v, bias, ws), at.o.weight, at.o.bias, x, ws, stats=FOLD_NORMS)
+        return fused_mlp(x, self.mlp_norm, self.mlp, ws)
 
 
 def camera_names(n: int) -> tuple[str, ...]:

@@ -22,10 +22,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from shared.models import layers
 from shared.models.base import Handoff, ModelIO, VLAModel
-from shared.models.fused import Workspace, gated_act, linear_residual_splitk, split_qkv
+from shared.models.fused import Workspace, linear_residual_splitk, split_qkv
 from shared.models.layers import (DecoderLayer, GatedMLP, RMSNorm, SigLIP, attention, attn_bias, camera_names,
-                                  euler_times, init_weights, linear_residual, rope_cos_sin, sincos_time)
+                                  euler_times, fused_mlp, init_weights, linear_residual, norm_linear, rope_cos_sin,
+                                  sincos_time)
 from shared.models.registry import register
 
 
@@ -82,11 +84,14 @@ class CrossLayer(nn.Module):
 
     def forward(self, x: torch.Tensor, ctx: tuple[torch.Tensor, torch.Tensor],
                 rope: tuple[torch.Tensor, torch.Tensor], bias: torch.Tensor, ws: Workspace | None = None) -> torch.Tensor:
+        if ws is not None:  # the fused kernels and the norms folded away (DecoderLayer.forward_fused)
+            qp, stats = norm_linear(x, self.attn_norm, self.q, ws)
+            q = split_qkv(qp, self.heads, 0, self.head_dim, None, None, *rope, row_stats=stats,
+                          row_eps=self.attn_norm.eps)
+            x = linear_residual_splitk(attention(q, ctx[0], ctx[1], bias, ws), self.o.weight, self.o.bias, x, ws,
+                                       stats=layers.FOLD_NORMS)
+            return fused_mlp(x, self.mlp_norm, self.mlp, ws)
         q = split_qkv(self.q(self.attn_norm(x)), self.heads, 0, self.head_dim, None, None, *rope)
-        if ws is not None:  # fused attention merge and split-K residual GEMMs (DecoderLayer.forward_fused)
-            x = linear_residual_splitk(attention(q, ctx[0], ctx[1], bias, ws), self.o.weight, self.o.bias, x, ws)
-            h = gated_act(self.mlp.gate_up(self.mlp_norm(x)), self.mlp.act)
-            return linear_residual_splitk(h, self.mlp.down.weight, self.mlp.down.bias, x, ws)
         x = linear_residual(attention(q, ctx[0], ctx[1], bias), self.o, x)
         return self.mlp(self.mlp_norm(x), x)
 

@@ -58,6 +58,52 @@ def test_gated_act_matches_reference(act):
     torch.testing.assert_close(fast, ref, atol=2e-2, rtol=2e-2)
 
 
+def _row_stats(rows: int, width: int, tiles: int, seed: int) -> fused.RowStats:
+    g = torch.Generator(device="cuda").manual_seed(seed)
+    ss = torch.rand(tiles, rows, device="cuda", generator=g) * width * 4 / tiles
+    return fused.RowStats(ss, width)
+
+
+@needs_cuda
+@pytest.mark.parametrize("act", ["gelu_tanh", "silu"])
+@pytest.mark.parametrize("rows,f,tiles", [(51, 4096, 32), (100, 2048, 23)])
+def test_gated_act_row_stats_matches_reference(act, rows, f, tiles):
+    x = torch.randn(rows, 2 * f, device="cuda", dtype=torch.bfloat16) * 4
+    stats = _row_stats(rows, 1024, tiles, rows)
+    fast, ref = _both_paths(lambda: fused.gated_act(x, act, stats, 1e-6))
+    assert _rel(fast, ref) < 1e-2
+    scaled = x.double() * stats.rstd(1e-6).double()[:, None]  # act(r g) * (r u), in float64
+    gate, up = scaled.chunk(2, dim=-1)
+    gate = torch.nn.functional.gelu(gate, approximate="tanh") if act == "gelu_tanh" else torch.nn.functional.silu(gate)
+    assert _rel(fast, gate * up) < 1e-2
+
+
+@needs_cuda
+@pytest.mark.parametrize("n_q,n_kv,d,tiles", [(8, 1, 256, 32), (15, 5, 64, 23), (15, 0, 64, 23)])
+def test_split_qkv_row_stats_matches_reference(n_q, n_kv, d, tiles):
+    g = torch.Generator(device="cuda").manual_seed(d)
+    b, s = 2, 25
+    qkv = (torch.randn(b, s, (n_q + 2 * n_kv) * d, device="cuda", generator=g) * 4).bfloat16()
+    ang = torch.rand(b, s, d // 2, device="cuda", generator=g) * 6
+    cos, sin = ang.cos(), ang.sin()
+    stats = _row_stats(b * s, 720, tiles, d)
+
+    def run():
+        cache = torch.zeros(b, 2, max(n_kv, 1), s, d, device="cuda", dtype=torch.bfloat16)
+        k_out, v_out = (cache[:, 0], cache[:, 1]) if n_kv else (None, None)
+        return fused.split_qkv(qkv, n_q, n_kv, d, k_out, v_out, cos, sin, row_stats=stats, row_eps=1e-6), cache
+
+    (q1, c1), (q2, c2) = _both_paths(run)
+    assert _rel(q1, q2) < 1e-2
+    if n_kv:
+        assert _rel(c1, c2) < 1e-2
+    # Scaling the rows first and splitting without statistics gives the same heads.
+    scaled = (qkv.float() * stats.rstd(1e-6).view(b, s, 1)).bfloat16()
+    q3 = fused.split_qkv(scaled, n_q, n_kv, d, torch.zeros_like(c1[:, 0]) if n_kv else None,
+                         torch.zeros_like(c1[:, 1]) if n_kv else None, cos, sin)
+    assert _rel(q1, q3) < 1e-2
+
+
 @needs_cuda
 @pytest.mark.parametrize("grid,size,c,dtype", [(48, 16, 1152, torch.bfloat16), (48, 24, 64, torch.float32),
                                                (7, 10, 33, torch.float32), (9, 4, 2000, torch.bfloat16)])
@@ -227,6 +273,16 @@ def test_linear_residual_splitk_matches_reference(rows, k, n):
     assert _rel(outs[0], ref) < 1e-2
     assert all(torch.equal(o, outs[0]) for o in outs)  # fixed reduction order: deterministic
     assert int(ws._cnt.abs().sum()) == 0  # counters left at zero
+    # With row statistics: the same product, and per-tile sums of squares of the stored values.
+    out = fused.linear_residual_splitk(x, w, bias, r, ws, stats=True)
+    assert _rel(out, ref) < 1e-2 and int(ws._cnt.abs().sum()) == 0
+    stats = ws.stats_of(out)
+    if rows <= fused.GEMM_CFG["max_rows"]:  # the Triton path takes every size when statistics are wanted
+        assert stats is not None and stats.width == n and stats.ss.shape[1] == rows
+        torch.testing.assert_close(stats.ss.sum(0), (out.double() ** 2).sum(1).float(), rtol=1e-5, atol=1e-3)
+    else:  # cuBLAS path: no statistics, the norm after it runs as before
+        assert stats is None
+    assert ws.stats_of(outs[0]) is None
 
 
 @needs_cuda
@@ -253,7 +309,8 @@ def test_small_attention_fused_combine(b, h, m, length, d, rows):
 
 @needs_cuda
 @pytest.mark.parametrize("arch", ["pi0", "smolvla"])
-def test_full_action_stage_fused_matches_reference(arch):
+@pytest.mark.parametrize("b", [1, 2])
+def test_full_action_stage_fused_matches_reference(arch, b):
     """The whole action stage on the fused kernels vs the plain PyTorch ops, full size, bf16,
     with random (non-identity) norm weights so that the norm folding is exercised."""
     torch.cuda.empty_cache()
@@ -263,7 +320,6 @@ def test_full_action_stage_fused_matches_reference(arch):
         for name, p in m.expert.named_parameters():
             if "norm" in name:
                 p.copy_(torch.rand(p.shape, device="cuda", generator=g) + 0.5)
-    b = 2
     images, state, tokens = m.example_inputs(b, generator=torch.Generator().manual_seed(0))
     tokens[0, 10:] = 0
     noise = m.noise(b, generator=torch.Generator().manual_seed(1)).bfloat16()
@@ -272,5 +328,7 @@ def test_full_action_stage_fused_matches_reference(arch):
         fast, ref = _both_paths(lambda: m.action_stage(h, noise))
     assert torch.isfinite(fast).all()
     assert _rel(fast, ref) < 2e-2, _rel(fast, ref)
+    # The split-K GEMM's row statistics replaced the MLP norm, so the gate/up weight was folded.
+    assert "_folded" in m.expert.layers[1].mlp.gate_up.__dict__
     del m
     torch.cuda.empty_cache()
