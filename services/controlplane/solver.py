@@ -486,6 +486,7 @@ def solve_ip(
         mdl.add(sum(r[i, j] for j in m.gpus) == m.robots)
 
     twice_obj: list = []
+    obj_bound = 0  # largest |2 x objective| the terms below can reach; CP-SAT refuses one past int64
     hosted: dict[int, list[int]] = {j: [i for (i, jj) in r if jj == j] for j in range(G)}
     for j, models_j in hosted.items():
         if not models_j:
@@ -504,14 +505,23 @@ def solve_ip(
             continue  # a GPU with one model adds nothing to (3)
         # sum_{i<k} r_ij r_kj = (L_j^2 - sum_i r_ij^2) / 2 with L_j = sum_i r_ij: one square
         # per variable plus one per GPU instead of one product per model pair.
-        max_load = max(limits)
+        # L_j is at most the sum of its terms' bounds: with a large C_i but few robots the
+        # squares stay small, where max(C_i)^2 alone would overflow CP-SAT's int64 domains.
+        ubs = [min(problem.models[i].robots, problem.models[i].limit) for i in models_j]
+        max_load = min(max(limits), sum(ubs))
+        obj_bound += max_load * max_load + sum(ub * ub for ub in ubs)
+        if obj_bound > _MAX_SCALED_ACTIVITY:
+            raise PlanInputError(
+                "models",
+                f"robot populations and limits of the models on GPU {j} are too large for the integer "
+                "program's objective (squared robot counts overflow int64)",
+            )
         load = mdl.new_int_var(0, max_load, f"L_{j}")
         mdl.add(load == sum(r[i, j] for i in models_j))
         load_sq = mdl.new_int_var(0, max_load * max_load, f"L2_{j}")
         _add_square(mdl, load, max_load, load_sq)
         twice_obj.append(load_sq)
-        for i in models_j:
-            ub = min(problem.models[i].robots, problem.models[i].limit)
+        for i, ub in zip(models_j, ubs):
             sq = mdl.new_int_var(0, ub * ub, f"s_{i}_{j}")
             _add_square(mdl, r[i, j], ub, sq)
             twice_obj.append(-sq)

@@ -58,9 +58,16 @@ class ClusterState:
         return True
 
     def replace_config(self, cfg: ClusterConfig) -> None:
-        """New desired state (placement, populations, limits): re-solve even if the routes stay."""
-        self.cfg = cfg
-        self._rebuild(force=True)
+        """New desired state (placement, populations, limits): re-solve even if the routes stay.
+
+        If the re-solve fails the running config stays the desired state, so a failed `apply`
+        changes nothing (the table is only replaced once a solve succeeds)."""
+        old, self.cfg = self.cfg, cfg
+        try:
+            self._rebuild(force=True)
+        except BaseException:
+            self.cfg = old
+            raise
 
     def heartbeat(self, name: str, depths: dict[str, int], now: float | None = None) -> bool:
         """False when the executor is unknown (it must register again, e.g. after a control-plane restart)."""

@@ -41,14 +41,29 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[s
     for j, name in enumerate(executors):
         for model in placement[name]:
             hosts.setdefault(model, []).append(j)
+    # A model no live, serving executor hosts (its hosts drained, crashed or not registered yet)
+    # has no route, so its robots are answered UNAVAILABLE until a host is back. Planning it would
+    # make the whole problem invalid and drop every other model's assignment with it.
+    unhosted = [n for n in demands if n not in hosts]
+    if unhosted:
+        log.warning("no serving executor hosts %s: planning the other models without them", unhosted)
+    planned = [m for m in demands.values() if m.name in hosts]
+    if not planned:
+        return Quotas({}, {})
     try:
         problem = with_headroom(PlanProblem(len(executors), tuple(
-            ModelDemand(m.name, limit[m.name], m.robots, tuple(hosts.get(m.name, ()))) for m in demands.values())),
+            ModelDemand(m.name, limit[m.name], m.robots, tuple(hosts[m.name])) for m in planned)),
             cfg.control.headroom)
     except PlanInputError as exc:
         log.error("cannot plan the traffic: %s", exc)
         return Quotas({}, {})
-    result = solve(problem, cfg.control.strategy, time_limit_s=cfg.control.solve_time_limit_s)
+    try:
+        result = solve(problem, cfg.control.strategy, time_limit_s=cfg.control.solve_time_limit_s)
+    except PlanInputError as exc:
+        # Limits the integer program cannot state exactly (e.g. their least common multiple
+        # overflows int64): the even split needs no such arithmetic and still gives every robot a GPU.
+        log.error("cannot solve the traffic assignment: %s; splitting robots evenly instead", exc)
+        result = solve(problem, "eps")
     if not result.assignment:
         log.error("traffic assignment is infeasible: %s; splitting robots evenly instead", result.diagnosis)
         result = solve(problem, "eps")

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 
-from services.fleet.robots import run_fleet
+from services.fleet.robots import check_settings, run_fleet
+from shared.client import RobionError
 from shared.config import dial_address
 from shared.service import load_or_exit, setup_logging
+
+log = logging.getLogger("robion.fleet")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,9 +32,21 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_or_exit(args.config)
     f = cfg.fleet
     address = args.address or dial_address(cfg.router.bind)
-    report = run_fleet(address, robots=args.robots or f.robots, hz=args.hz or f.hz,
-                       duration_s=args.duration or f.duration_s, seed=f.seed if args.seed is None else args.seed,
-                       network=args.network or f.network, models=f.models)
+    # An option given as 0 is a value to check, not "use the config's" (only None is).
+    robots = f.robots if args.robots is None else args.robots
+    hz = f.hz if args.hz is None else args.hz
+    duration_s = f.duration_s if args.duration is None else args.duration
+    network = args.network or f.network
+    try:
+        check_settings(robots, hz, duration_s, network)
+    except ValueError as exc:
+        p.error(f"--{exc}")  # usage and the bad option on stderr, exit code 2
+    try:
+        report = run_fleet(address, robots=robots, hz=hz, duration_s=duration_s,
+                           seed=f.seed if args.seed is None else args.seed, network=network, models=f.models)
+    except (ValueError, RobionError) as exc:
+        log.error("%s", exc)
+        return 1
     print(f"{report.robots} robots at {report.hz:g} Hz for {report.duration_s:g} s, network {report.network}:")
     print(report.table())
     if args.json:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
@@ -51,15 +52,33 @@ class FleetReport:
         return "\n".join(rows)
 
 
+def check_settings(robots: int, hz: float, duration_s: float, network: str) -> None:
+    """ValueError naming the first setting a fleet cannot run with (a rate <= 0 would never advance a robot's clock)."""
+    if isinstance(robots, bool) or not isinstance(robots, int) or robots < 1:
+        raise ValueError(f"robots: expected a positive integer, got {robots!r}")
+    for name, value in (("hz", hz), ("duration", duration_s)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            raise ValueError(f"{name}: expected a positive number, got {value!r}")
+    if network not in NETWORKS:
+        raise ValueError(f"network: expected one of {', '.join(sorted(NETWORKS))}, got {network!r}")
+
+
 def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int = 0, network: str = "wifi7",
               models: list[str] | None = None, drain_s: float = 5.0) -> FleetReport:
-    """Drive ``robots`` simulated robots at ``hz`` for ``duration_s``; robots are spread over ``models`` round-robin."""
+    """Drive ``robots`` simulated robots at ``hz`` for ``duration_s``; robots are spread over ``models`` round-robin.
+
+    Raises ValueError for settings out of range and for a router that serves none of the models.
+    """
+    check_settings(robots, hz, duration_s, network)
     rng = np.random.default_rng(seed)
     net = NETWORKS[network]
     ctx = zmq.Context.instance()
     probe = RobotClient(address, robot_id=f"fleet-probe-{seed}", context=ctx)
     meta = probe.metadata()
     probe.close()
+    if not meta:
+        # No executor has described a model yet (the cluster is still starting, or none was placed).
+        raise ValueError(f"the router at {address} serves no models yet")
     models = models or sorted(meta)
     missing = [m for m in models if m not in meta]
     if missing:

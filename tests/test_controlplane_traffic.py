@@ -1,0 +1,130 @@
+"""The control plane keeps a traffic assignment through drains, odd limits and failed applies.
+
+A real control plane runs on a loopback socket in a thread; executors are stood in for by the
+register messages a real executor sends (the plane cannot tell the difference).
+"""
+
+import threading
+
+import pytest
+import yaml
+
+import services.controlplane.server as server
+import services.controlplane.state as state
+from shared.cluster import control_request, control_status
+from shared.config import load_config
+from tests.helpers import cluster_config
+
+INFO = {"cameras": ["cam0"], "image_shape": [8, 8, 3], "state_dim": 4, "horizon": 2, "action_dim": 2,
+        "deadline_ms": 500.0, "arch": "toy"}
+
+
+def models(a: dict, b: dict) -> list[dict]:
+    return [{"name": "toy-a", "arch": "toy", "size": "tiny", "seed": 0, "slo_ms": 500, **a},
+            {"name": "toy-b", "arch": "toy", "size": "tiny", "seed": 1, "slo_ms": 500, **b}]
+
+
+def start_plane(tmp_path, **overrides):
+    path, data = cluster_config(tmp_path, **overrides)
+    # Heartbeats are never sent here: keep the registered stand-ins alive for the whole test.
+    data["control"]["missed_heartbeats"] = 500
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_config(path)
+    cp = server.ControlPlane(cfg)
+    stop = threading.Event()
+    t = threading.Thread(target=cp.run, args=(stop,), daemon=True)
+    t.start()
+    return cfg.control.bind, data, stop, t
+
+
+@pytest.fixture
+def plane(tmp_path, request):
+    address, data, stop, t = start_plane(tmp_path, **request.param)
+    yield address, data, t
+    stop.set()
+    t.join(10)
+
+
+def register(address: str, executor: str, names: list[str]) -> dict | None:
+    return control_request(address, "register", timeout_s=5, executor=executor, device="cpu",
+                           models={n: INFO for n in names})
+
+
+@pytest.mark.parametrize("plane", [{"models": models({"robots": 4, "limit": 4}, {"robots": 2, "limit": 4})}],
+                         indirect=True)
+def test_draining_the_only_host_of_one_model_keeps_the_others_assignment(plane):
+    address, _, _ = plane
+    assert register(address, "ex0", ["toy-a", "toy-b"])["kind"] == "registered"
+    assert register(address, "ex1", ["toy-a"])["kind"] == "registered"
+    assert control_status(address, 5)["table"]["quotas"] == {"toy-a": {"ex1": 4}, "toy-b": {"ex0": 2}}
+    # ex0 is toy-b's only host. toy-b's robots get UNAVAILABLE until it is back, but toy-a's
+    # robots still have a solved place on ex1, not a round-robin spread.
+    assert control_request(address, "drain", timeout_s=5, executor="ex0")["kind"] == "ok"
+    table = control_status(address, 5)["table"]
+    assert table["routes"] == {"toy-a": ["ex1"]}
+    assert table["quotas"] == {"toy-a": {"ex1": 4}}
+    assert table["limits"] == {"toy-a": 4, "toy-b": 4}
+    assert control_request(address, "resume", timeout_s=5, executor="ex0")["kind"] == "ok"
+    assert control_status(address, 5)["table"]["quotas"] == {"toy-a": {"ex1": 4}, "toy-b": {"ex0": 2}}
+
+
+@pytest.mark.parametrize("plane", [{"models": models({"robots": 1, "limit": 2**31 - 1}, {"robots": 1, "limit": 2**31 - 2})},
+                                   {"models": models({"robots": 2, "limit": 2**40}, {"robots": 3, "limit": 2**40})}],
+                         indirect=True, ids=["lcm-too-large", "equal-large-limits"])
+def test_large_robot_limits_do_not_break_registration(plane):
+    """Limits the config accepts (any positive integer) must still give every robot a GPU."""
+    address, data, t = plane
+    population = {m["name"]: m["robots"] for m in data["models"]}
+    reply = register(address, "ex0", ["toy-a", "toy-b"])
+    assert reply is not None and reply["kind"] == "registered", reply
+    table = control_status(address, 5)["table"]
+    assert table["routes"] == {"toy-a": ["ex0"], "toy-b": ["ex0"]}
+    assert table["quotas"] == {m: {"ex0": n} for m, n in population.items()}
+    # A second host re-plans; losing it again re-plans too. The plane answers throughout.
+    assert register(address, "ex1", ["toy-a"])["kind"] == "registered"
+    assert {m: sum(q.values()) for m, q in control_status(address, 5)["table"]["quotas"].items()} == population
+    control_request(address, "deregister", timeout_s=0.2, executor="ex1")
+    assert control_status(address, 5)["table"]["quotas"] == {m: {"ex0": n} for m, n in population.items()}
+    assert t.is_alive()
+
+
+def test_solver_bounds_squares_by_robots_not_by_limits():
+    from services.controlplane.solver import PlanInputError, check_assignment, make_problem, solve
+
+    # Two models sharing a GPU with a huge C_i but a handful of robots: a small problem.
+    p = make_problem(2, [("a", 2**40, 2, None), ("b", 2**40, 3, [0])])
+    res = solve(p, time_limit_s=5)
+    assert res.feasible and res.optimal and res.objective == 0 and check_assignment(p, res.assignment) == []
+    p = make_problem(1, [("a", 2**31, 3, None), ("b", 2**31, 1, None)])
+    res = solve(p, time_limit_s=5)
+    assert res.status == "optimal" and res.assignment == {"a": {0: 3}, "b": {0: 1}}, res.diagnosis
+    # Squared robot counts past int64 are refused with a reason, not a TypeError from CP-SAT.
+    p = make_problem(1, [("a", 2**40, 2**35, None), ("b", 2**40, 2**35, None)])
+    with pytest.raises(PlanInputError, match="too large"):
+        solve(p, time_limit_s=5)
+
+
+@pytest.mark.parametrize("plane", [{"models": models({"robots": 4, "limit": 4}, {"robots": 2, "limit": 4})}],
+                         indirect=True)
+def test_an_apply_that_fails_while_solving_changes_nothing(plane, monkeypatch):
+    address, data, t = plane
+    assert register(address, "ex0", ["toy-a", "toy-b"])["kind"] == "registered"
+    before = control_status(address, 5)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("solver exploded")
+
+    monkeypatch.setattr(state, "assign", broken)
+    new = dict(data, models=models({"robots": 1, "limit": 8}, {"robots": 1, "limit": 8}))
+    reply = control_request(address, "apply", timeout_s=10, config=yaml.safe_dump(new))
+    assert reply is not None and reply["kind"] == "error" and "solver exploded" in reply["message"], reply
+    monkeypatch.undo()
+    after = control_status(address, 5)
+    # The running config is still the desired state: its limits, table and (no) rollout.
+    assert after["limits"] == before["limits"] == {"toy-a": 4, "toy-b": 4}
+    assert after["table"] == before["table"] and after["rollout"] is None
+    # A later re-plan (a new executor joins) still plans the old populations.
+    assert register(address, "ex1", ["toy-a"])["kind"] == "registered"
+    quotas = control_status(address, 5)["table"]["quotas"]
+    assert {m: sum(q.values()) for m, q in quotas.items()} == {"toy-a": 4, "toy-b": 2}
+    assert t.is_alive()
