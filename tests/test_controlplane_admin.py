@@ -3,6 +3,7 @@
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -59,3 +60,21 @@ def test_unexpected_apply_failure_is_answered_and_the_plane_keeps_serving(plane,
     assert control_status(address, timeout_s=5)["rollout"] is None  # nothing was half-applied
     reply = control_request(address, "apply", timeout_s=10, config=yaml.safe_dump(data))
     assert reply is not None and reply["kind"] == "applied", reply
+
+
+def test_failing_periodic_work_does_not_end_the_plane(plane, monkeypatch):
+    path, _ = plane
+    address = load_config(path).control.bind
+    calls = []
+
+    def broken(*args, **kwargs):
+        calls.append(1)
+        raise RuntimeError("re-plan exploded")
+
+    monkeypatch.setattr(server.ClusterState, "expire", broken)
+    deadline = time.monotonic() + 5
+    while len(calls) < 3 and time.monotonic() < deadline:  # the loop ticks every 0.1 s
+        time.sleep(0.05)
+    assert len(calls) >= 3  # it kept ticking after the first failure
+    monkeypatch.undo()
+    assert control_status(address, timeout_s=5) is not None  # and kept answering

@@ -46,12 +46,21 @@ class ControlPlane:
                         self._handle(frames)
                     except Exception:
                         log.exception("bad control message")
-            for name in self.state.expire():
-                log.warning("executor %s missed its heartbeats: removed from routing", name)
-            if self.rollout is not None:
-                self.rollout.tick(self.state, self._send_load)
-            self._update_metrics()
+            try:
+                self._tick()
+            except Exception:
+                # An unforeseen failure in the periodic work (the re-plan after an expiry, a
+                # rollout step, metrics) must not end the control plane: routers and executors
+                # depend on it. The work runs again on the next tick.
+                log.exception("periodic control-plane work failed")
         self.sock.close(linger=0)
+
+    def _tick(self) -> None:
+        for name in self.state.expire():
+            log.warning("executor %s missed its heartbeats: removed from routing", name)
+        if self.rollout is not None:
+            self.rollout.tick(self.state, self._send_load)
+        self._update_metrics()
 
     def _update_metrics(self) -> None:
         live = set(self.state.executors)
