@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 from shared.models.fused import RowStats, Workspace, gated_act, split_qkv
-from shared.models.layers import RMSNorm, folded_weight, norm_linear
+from shared.models.layers import RMSNorm, folded_norm_linear, folded_weight
 
 
 def _stats(x: torch.Tensor, tiles: int) -> RowStats:
@@ -31,7 +31,7 @@ def test_folded_qkv_equals_norm_then_gemm():
     norm, lin, x = _parts(out=(n_q + 2 * n_kv) * d)
     ws = Workspace(torch.device("cpu"))
     ws.keep_stats(x, _stats(x.view(10, 64), tiles=4))
-    raw, stats = norm_linear(x, norm, lin, ws)
+    raw, stats = folded_norm_linear(x, norm, lin, ws)
     assert stats is not None
     ang = torch.rand(2, 5, d // 2, generator=torch.Generator().manual_seed(3)) * 6
     cos, sin = ang.cos(), ang.sin()
@@ -47,7 +47,7 @@ def test_folded_gated_mlp_input_equals_norm_then_gemm():
     norm, lin, x = _parts(out=2 * 48)
     ws = Workspace(torch.device("cpu"))
     ws.keep_stats(x, _stats(x.view(10, 64), tiles=2))
-    raw, stats = norm_linear(x, norm, lin, ws)
+    raw, stats = folded_norm_linear(x, norm, lin, ws)
     for act in ("gelu_tanh", "silu"):
         torch.testing.assert_close(gated_act(raw, act, stats, norm.eps), gated_act(lin(norm(x)), act),
                                    atol=1e-5, rtol=1e-5)
@@ -59,14 +59,14 @@ def test_without_stats_the_norm_runs():
     ws = Workspace(torch.device("cpu"))
     ws.keep_stats(x, _stats(x.view(10, 64), tiles=4))
     # Another tensor object over the same memory (a view) is not the one the stats describe.
-    out, stats = norm_linear(x.view(2, 5, 64), norm, lin, ws)
+    out, stats = folded_norm_linear(x.view(2, 5, 64), norm, lin, ws)
     assert stats is None
     torch.testing.assert_close(out, lin(norm(x)))
     ws.keep_stats(x, None)
     assert ws.stats_of(x) is None
     lin_b = nn.Linear(64, 96, bias=True)  # a bias must not be scaled by 1 / rms: no folding
     ws.keep_stats(x, _stats(x.view(10, 64), tiles=4))
-    assert norm_linear(x, norm, lin_b, ws)[1] is None
+    assert folded_norm_linear(x, norm, lin_b, ws)[1] is None
 
 
 def test_folded_weight_follows_weight_changes():

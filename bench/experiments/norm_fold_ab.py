@@ -3,7 +3,7 @@ their norm kernels, side by side in one process.
 
 Folded (main): the split-K residual GEMM leaves each row's sums of squares, the next QKV or
 gate/up GEMM runs on the un-normalised rows with the norm weight folded into its weight, and
-the QKV split or the gated activation applies 1 / rms (``layers.norm_linear``). Unfolded:
+the QKV split or the gated activation applies 1 / rms (``layers.folded_norm_linear``). Unfolded:
 ``layers.FOLD_NORMS = False``, the path before that change (a norm kernel before each GEMM).
 Over 64 rows (batch 2), the split-K GEMM takes weights under 4 MB (SmolVLA) only when the
 norm after it folds; a third variant keeps the old rule (weights >= 4 MB only), so SmolVLA's

@@ -104,7 +104,7 @@ def folded_weight(lin: nn.Linear, norm: RMSNorm) -> torch.Tensor:
 FOLD_NORMS = True  # bench/experiments/norm_fold_ab.py turns it off to time the stages without
 
 
-def norm_linear(x: torch.Tensor, norm: RMSNorm, lin: nn.Linear,
+def folded_norm_linear(x: torch.Tensor, norm: RMSNorm, lin: nn.Linear,
                 ws: Workspace) -> tuple[torch.Tensor, RowStats | None]:
     """``lin(norm(x))`` in the action stages. When the split-K GEMM that wrote ``x`` left its
     rows' sums of squares in ``ws``, the norm's kernel is skipped: the GEMM runs on ``x`` with the
@@ -392,7 +392,7 @@ class DiTBlock(nn.Module):
 
 def fused_mlp(x: torch.Tensor, norm: RMSNorm, mlp: GatedMLP, ws: Workspace) -> torch.Tensor:
     """``x + mlp(norm(x))`` on the action stages' fused kernels (see ``DecoderLayer.forward_fused``)."""
-    gu, stats = norm_linear(x, norm, mlp.gate_up, ws)
+    gu, stats = folded_norm_linear(x, norm, mlp.gate_up, ws)
     h = gated_act(gu, mlp.act, stats, norm.eps)
     return linear_residual_splitk(h, mlp.down.weight, mlp.down.bias, x, ws, stats=FOLD_NORMS)
 
@@ -434,9 +434,9 @@ class DecoderLayer(nn.Module):
         partials in-kernel and the o / down projections add the residual in a split-K Triton
         GEMM (one launch each, no DtoD copy, no cuBLAS reduce kernel). That GEMM also leaves its
         rows' sums of squares, so the norm after it folds into the next cuBLAS GEMM's weight and
-        1 / rms into the QKV split or the gated activation (``norm_linear``): no norm kernels."""
+        1 / rms into the QKV split or the gated activation (``folded_norm_linear``): no norm kernels."""
         at = self.attn
-        qkv, stats = norm_linear(x, self.attn_norm, at.qkv, ws)
+        qkv, stats = folded_norm_linear(x, self.attn_norm, at.qkv, ws)
         cos, sin = rope if rope is not None else (None, None)
         q = split_qkv(qkv, at.n_heads, at.n_kv_heads, at.head_dim, k_out, v_out, cos, sin,
                       at.q_norm.weight if at.q_norm is not None else None,

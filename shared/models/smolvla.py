@@ -26,8 +26,8 @@ from shared.models import layers
 from shared.models.base import Handoff, ModelIO, VLAModel
 from shared.models.fused import Workspace, linear_residual_splitk, split_qkv
 from shared.models.layers import (DecoderLayer, GatedMLP, RMSNorm, SigLIP, attention, attn_bias, camera_names,
-                                  euler_times, fused_mlp, init_weights, linear_residual, norm_linear, rope_cos_sin,
-                                  sincos_time)
+                                  euler_times, folded_norm_linear, fused_mlp, init_weights, linear_residual,
+                                  rope_cos_sin, sincos_time)
 from shared.models.registry import register
 
 
@@ -85,7 +85,7 @@ class CrossLayer(nn.Module):
     def forward(self, x: torch.Tensor, ctx: tuple[torch.Tensor, torch.Tensor],
                 rope: tuple[torch.Tensor, torch.Tensor], bias: torch.Tensor, ws: Workspace | None = None) -> torch.Tensor:
         if ws is not None:  # the fused kernels and the norms folded away (DecoderLayer.forward_fused)
-            qp, stats = norm_linear(x, self.attn_norm, self.q, ws)
+            qp, stats = folded_norm_linear(x, self.attn_norm, self.q, ws)
             q = split_qkv(qp, self.heads, 0, self.head_dim, None, None, *rope, row_stats=stats,
                           row_eps=self.attn_norm.eps)
             x = linear_residual_splitk(attention(q, ctx[0], ctx[1], bias, ws), self.o.weight, self.o.bias, x, ws,
