@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import signal
 import subprocess
@@ -18,6 +19,17 @@ from shared.service import load_or_exit
 
 DEFAULT_DEMO = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
 
+
+def positive_seconds(text: str) -> float:
+    """argparse type of a --timeout: a wait of zero, a negative one (which zmq takes as "forever")
+    or a non-finite one is refused by argparse with a message and exit code 2, not a traceback."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return value
 
 
 def _wait_for_signal() -> None:
@@ -159,12 +171,13 @@ def main(argv: list[str] | None = None) -> int:
 
     up = sub.add_parser("up", help="start router, control plane and executors as local processes")
     up.add_argument("-c", "--config", required=True)
-    up.add_argument("--timeout", type=float, default=300.0, help="seconds to wait for the cluster to be ready")
+    up.add_argument("--timeout", type=positive_seconds, default=300.0,
+                    help="seconds to wait for the cluster to be ready")
     up.set_defaults(fn=cmd_up)
 
     demo = sub.add_parser("demo", help="start a cluster, drive a simulated fleet against it, print the SLO report")
     demo.add_argument("-c", "--config", default=str(DEFAULT_DEMO))
-    demo.add_argument("--timeout", type=float, default=300.0)
+    demo.add_argument("--timeout", type=positive_seconds, default=300.0)
     demo.add_argument("--json", metavar="FILE", help="also write the fleet report as JSON")
     demo.set_defaults(fn=cmd_demo)
 
@@ -188,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     ctl.add_argument("target", nargs="?", help="config file for apply, executor name for drain/resume")
     ctl.add_argument("-c", "--config", required=True, help="the running cluster's config (control-plane address)")
     ctl.add_argument("--no-wait", dest="wait", action="store_false", help="apply: return once accepted")
-    ctl.add_argument("--timeout", type=float, default=600.0)
+    ctl.add_argument("--timeout", type=positive_seconds, default=600.0,
+                     help="apply: seconds to wait for the placement change to finish")
     ctl.set_defaults(fn=cmd_ctl)
 
     args = p.parse_args(argv)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
 import signal
 import subprocess
@@ -20,14 +21,20 @@ log = logging.getLogger("robion.cluster")
 
 def control_request(address: str, kind: str, timeout_s: float = 1.0, context: zmq.Context | None = None,
                     **fields) -> dict | None:
-    """One request to the control plane's admin API; None when it does not answer in time."""
+    """One request to the control plane's admin API; None when it does not answer in time.
+
+    ``timeout_s`` must be positive and finite: zmq's poll() waits forever on a negative timeout
+    and does not wait at all on zero, so either would hide a control plane that does not answer.
+    """
+    if not (math.isfinite(timeout_s) and timeout_s > 0):
+        raise ValueError(f"timeout_s must be a positive number of seconds, got {timeout_s!r}")
     ctx = context or zmq.Context.instance()
     sock = ctx.socket(zmq.DEALER)
     sock.setsockopt(zmq.LINGER, 0)
     try:
         sock.connect(address)
         sock.send(control.pack(kind, **fields))
-        if not sock.poll(int(timeout_s * 1000)):
+        if not sock.poll(math.ceil(timeout_s * 1000)):  # ceil: a sub-millisecond timeout still waits
             return None
         return control.unpack(sock.recv())
     finally:

@@ -1,15 +1,25 @@
 """Control messages between services (single msgpack frames, never seen by robots).
 
-executor -> control plane: register {executor, device, models: {name: ModelInfo}}, heartbeat {executor, depths},
-                           deregister {executor}
-router   -> control plane: table_get {version}       -> table {version, models, routes}
+executor -> control plane: register {executor, device, models: {name: ModelInfo}, limits: {name: int}}
+                                                     -> registered {version}
+                           heartbeat {executor, depths}  (answered only by reregister, when unknown)
+                           deregister {executor}         (not answered)
+router   -> control plane: table_get {version, role}  -> table {table: {version, models, routes, ...} or None}
 anyone   -> control plane: status                    -> status {executors, table, router}
+operator -> control plane: apply {config}            -> applied {steps, version}
+                           drain / resume {executor} -> ok {version}
 executor -> router (backend, empty robot frame): executor_hello {executor}
+
+A message the control plane cannot act on is answered error {code, message}: `message` is for
+people and names the bad field; `code` is stable (ControlError). A well-formed heartbeat or
+deregister is still not answered. A robot limit in `limits` that is not a positive integer is
+ignored with a warning (the rest of the registration, and its valid limits, are kept).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any
 
 from shared.protocol import ModelInfo, pack_header, unpack_header
@@ -21,6 +31,22 @@ def pack(kind: str, **fields: Any) -> bytes:
 
 def unpack(frame: bytes | memoryview) -> dict[str, Any]:
     return unpack_header(frame)
+
+
+class ControlError(str, Enum):
+    """The `code` of the control plane's error replies: stable, for programs to act on."""
+
+    BAD_REQUEST = "BAD_REQUEST"  # not msgpack, not a map, unknown kind, a missing or mistyped field
+    TOO_LARGE = "TOO_LARGE"  # a message beyond the header size limit
+    BAD_CONFIG = "BAD_CONFIG"  # apply: the new config is not valid YAML or fails validation
+    RESTART_REQUIRED = "RESTART_REQUIRED"  # apply: it changes settings read only at start-up
+    BUSY = "BUSY"  # apply: a placement change is still in progress
+    UNKNOWN_EXECUTOR = "UNKNOWN_EXECUTOR"  # drain / resume: no executor of that name is registered
+    INTERNAL = "INTERNAL"  # an unforeseen failure on the control plane (its log has the traceback)
+
+
+def error(code: ControlError | str, message: str) -> bytes:
+    return pack("error", code=ControlError(code).value, message=message)
 
 
 @dataclass

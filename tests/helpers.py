@@ -1,8 +1,9 @@
-"""Shared test fixtures: free loopback ports and small cluster configs."""
+"""Shared test fixtures: free loopback ports, small cluster configs and a control plane in a thread."""
 
 from __future__ import annotations
 
 import socket
+import threading
 from pathlib import Path
 
 import yaml
@@ -40,3 +41,24 @@ def cluster_config(tmp_path: Path, **overrides) -> tuple[Path, dict]:
     path = tmp_path / "cluster.yaml"
     path.write_text(yaml.safe_dump(data))
     return path, data
+
+
+# The model description a stand-in executor registers (what a real one sends for a tiny toy model).
+TOY_INFO = {"cameras": ["cam0"], "image_shape": [8, 8, 3], "state_dim": 4, "horizon": 2, "action_dim": 2,
+            "deadline_ms": 500.0, "arch": "toy"}
+
+
+def start_control_plane(path: Path, data: dict):
+    """A real control plane for the config ``data`` (written to ``path``) on its loopback socket, in a
+    thread. Stand-in executors send no heartbeats, so they are kept alive for the whole test.
+    Returns (config, stop event, thread)."""
+    from services.controlplane.server import ControlPlane
+    from shared.config import load_config
+
+    data["control"]["missed_heartbeats"] = 500
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_config(path)
+    stop = threading.Event()
+    t = threading.Thread(target=ControlPlane(cfg).run, args=(stop,), daemon=True)
+    t.start()
+    return cfg, stop, t

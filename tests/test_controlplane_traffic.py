@@ -4,19 +4,15 @@ A real control plane runs on a loopback socket in a thread; executors are stood 
 register messages a real executor sends (the plane cannot tell the difference).
 """
 
-import threading
 
 import pytest
 import yaml
 
-import services.controlplane.server as server
 import services.controlplane.state as state
 from shared.cluster import control_request, control_status
-from shared.config import load_config
-from tests.helpers import cluster_config
+from tests.helpers import TOY_INFO, cluster_config, start_control_plane
 
-INFO = {"cameras": ["cam0"], "image_shape": [8, 8, 3], "state_dim": 4, "horizon": 2, "action_dim": 2,
-        "deadline_ms": 500.0, "arch": "toy"}
+INFO = TOY_INFO
 
 
 def models(a: dict, b: dict) -> list[dict]:
@@ -26,14 +22,7 @@ def models(a: dict, b: dict) -> list[dict]:
 
 def start_plane(tmp_path, **overrides):
     path, data = cluster_config(tmp_path, **overrides)
-    # Heartbeats are never sent here: keep the registered stand-ins alive for the whole test.
-    data["control"]["missed_heartbeats"] = 500
-    path.write_text(yaml.safe_dump(data))
-    cfg = load_config(path)
-    cp = server.ControlPlane(cfg)
-    stop = threading.Event()
-    t = threading.Thread(target=cp.run, args=(stop,), daemon=True)
-    t.start()
+    cfg, stop, t = start_control_plane(path, data)
     return cfg.control.bind, data, stop, t
 
 

@@ -6,6 +6,7 @@ import logging
 import threading
 import time
 from dataclasses import asdict
+from typing import Any
 
 import yaml
 import zmq
@@ -14,13 +15,42 @@ from services.controlplane.rollout import Rollout, plan_steps, restart_only_chan
 from services.controlplane.state import ClusterState
 from shared import control
 from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_dict
+from shared.control import ControlError
 from shared.metrics import ControlMetrics, serve
 from shared.protocol import ModelInfo, ProtocolError
 
 log = logging.getLogger("robion.control")
 
 
+class BadRequest(Exception):
+    """A control message the plane cannot act on: answered BAD_REQUEST, naming the field."""
+
+
+def _kind_of(value: Any) -> str:
+    return "nothing" if value is None else type(value).__name__
+
+
+def _name(msg: dict, field: str) -> str:
+    """A required executor name: a non-empty string (str() of anything else would make up a name)."""
+    value = msg.get(field)
+    if not isinstance(value, str) or not value:
+        raise BadRequest(f"{field}: expected a non-empty string, got {_kind_of(value)}")
+    return value
+
+
+def _mapping(msg: dict, field: str, required: bool = False) -> dict:
+    """A map field; an optional one may be absent or null (read as empty)."""
+    value = msg.get(field)
+    if value is None and not required:
+        return {}
+    if not isinstance(value, dict):
+        raise BadRequest(f"{field}: expected a map, got {_kind_of(value)}")
+    return value
+
+
 class ControlPlane:
+    KINDS = ("register", "heartbeat", "deregister", "table_get", "status", "apply", "drain", "resume")
+
     def __init__(self, cfg: ClusterConfig, context: zmq.Context | None = None):
         self.cfg = cfg
         self.state = ClusterState(cfg)
@@ -86,6 +116,9 @@ class ControlPlane:
     def _reply(self, peer: bytes, kind: str, **fields) -> None:
         self.sock.send_multipart([peer, control.pack(kind, **fields)])
 
+    def _error(self, peer: bytes, code: ControlError, message: str) -> None:
+        self.sock.send_multipart([peer, control.error(code, message)])
+
     def _admin(self, peer: bytes, kind: str, msg: dict) -> None:
         """An operator's apply, drain or resume: always answered, so `robion ctl` never waits in vain.
 
@@ -94,26 +127,29 @@ class ControlPlane:
         """
         try:
             self._admin_request(peer, kind, msg)
+        except BadRequest:
+            raise  # answered BAD_REQUEST by _handle
         except Exception as exc:
             log.exception("%s failed", kind)
-            self._reply(peer, "error", message=f"{kind} failed on the control plane: {type(exc).__name__}: {exc} "
-                        "(see the control plane's log)")
+            self._error(peer, ControlError.INTERNAL, f"{kind} failed on the control plane: {type(exc).__name__}: "
+                        f"{exc} (see the control plane's log)")
 
     def _admin_request(self, peer: bytes, kind: str, msg: dict) -> None:
         st = self.state
         if kind == "apply":
             if self.rollout is not None and not self.rollout.finished:
-                return self._reply(peer, "error", message=f"a placement change is in progress: {self.rollout.status()}")
+                return self._error(peer, ControlError.BUSY,
+                                   f"a placement change is in progress: {self.rollout.status()}")
             try:
                 new = config_from_dict(yaml.safe_load(str(msg.get("config", ""))))
             except ConfigError as exc:
-                return self._reply(peer, "error", message=f"config error: {exc}")
+                return self._error(peer, ControlError.BAD_CONFIG, f"config error: {exc}")
             except yaml.YAMLError:
-                return self._reply(peer, "error", message="config error: not valid YAML")
+                return self._error(peer, ControlError.BAD_CONFIG, "config error: not valid YAML")
             fixed = restart_only_changes(st.cfg, new)
             if fixed:
-                return self._reply(peer, "error", message="apply changes models, placement, populations and "
-                                   "control.strategy live; these settings take effect only on restart, so nothing "
+                return self._error(peer, ControlError.RESTART_REQUIRED, "apply changes models, placement, populations "
+                                   "and control.strategy live; these settings take effect only on restart, so nothing "
                                    "was changed: " + "; ".join(fixed))
             steps = plan_steps(st.cfg, new, st)
             st.replace_config(new)
@@ -121,9 +157,9 @@ class ControlPlane:
             log.info("apply: new desired state, table v%d; executors to reload: %s", st.table.version,
                      [s.executor for s in steps])
             return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version)
-        name = str(msg.get("executor", ""))
+        name = _name(msg, "executor")
         if not st.set_draining(name, kind == "drain"):
-            return self._reply(peer, "error", message=f"no executor named {name!r} is registered")
+            return self._error(peer, ControlError.UNKNOWN_EXECUTOR, f"no executor named {name!r} is registered")
         log.info("%s %s (table v%d)", "drained" if kind == "drain" else "resumed", name, st.table.version)
         self._reply(peer, "ok", version=st.table.version)
 
@@ -132,37 +168,60 @@ class ControlPlane:
         try:
             msg = control.unpack(body)
         except ProtocolError as exc:
-            self.sock.send_multipart([peer, control.pack("error", message=exc.message)])
+            self._error(peer, ControlError(exc.code.value), exc.message)
             return
         kind = msg.get("kind")
+        if kind not in self.KINDS:
+            self._error(peer, ControlError.BAD_REQUEST, f"unknown kind {kind!r}")
+            return
+        try:
+            self._dispatch(peer, kind, msg)
+        except BadRequest as exc:
+            # Answered, so the sender learns at once what to fix rather than waiting out its timeout.
+            log.warning("bad %s message: %s", kind, exc)
+            self._error(peer, ControlError.BAD_REQUEST, f"{kind}: {exc}")
+
+    def _dispatch(self, peer: bytes, kind: Any, msg: dict) -> None:
+        """Every field is checked before anything changes, so a refused message leaves no trace."""
         st = self.state
         if kind == "register":
-            models = {n: ModelInfo.from_wire(i) for n, i in msg["models"].items()}
-            limits = {str(m): int(c) for m, c in dict(msg.get("limits") or {}).items()}
-            st.register(str(msg["executor"]), str(msg.get("device", "")), models, limits=limits)
-            log.info("executor %s registered on %s with %s (table v%d)", msg["executor"], msg.get("device"),
+            name = _name(msg, "executor")
+            models: dict[str, ModelInfo] = {}
+            for model, info in _mapping(msg, "models", required=True).items():
+                try:
+                    models[str(model)] = ModelInfo.from_wire(info)
+                except (KeyError, TypeError, ValueError) as exc:
+                    raise BadRequest(f"models.{model}: malformed model description "
+                                     f"({type(exc).__name__}: {exc})") from None
+            # Each limit's value is checked by ClusterState.register: a bad one is ignored, not fatal.
+            limits = {str(m): c for m, c in _mapping(msg, "limits").items()}
+            st.register(name, str(msg.get("device", "")), models, limits=limits)
+            log.info("executor %s registered on %s with %s (table v%d)", name, msg.get("device"),
                      sorted(models), st.table.version)
             if self.rollout is not None:
-                self.rollout.on_register(st, str(msg["executor"]), list(models))
-            self.sock.send_multipart([peer, control.pack("registered", version=st.table.version)])
+                self.rollout.on_register(st, name, list(models))
+            self._reply(peer, "registered", version=st.table.version)
         elif kind == "heartbeat":
-            known = st.heartbeat(str(msg["executor"]), dict(msg.get("depths", {})))
+            known = st.heartbeat(_name(msg, "executor"), dict(_mapping(msg, "depths")))
             if not known:
-                self.sock.send_multipart([peer, control.pack("reregister")])
+                self._reply(peer, "reregister")
         elif kind == "deregister":
-            st.deregister(str(msg.get("executor")))
-            log.info("executor %s left (table v%d)", msg.get("executor"), st.table.version)
+            name = _name(msg, "executor")
+            st.deregister(name)
+            log.info("executor %s left (table v%d)", name, st.table.version)
         elif kind == "table_get":
+            # The router reports the version it routes by; ``ready`` and rollouts compare it with ours.
+            version = msg.get("version", -1)
+            if isinstance(version, bool) or not isinstance(version, int):
+                raise BadRequest(f"version: expected an integer, got {_kind_of(version)}")
             if msg.get("role") == "router":
                 st.router_seen = time.monotonic()
-                st.router_version = int(msg.get("version", -1))
-            newer = msg.get("version") != st.table.version
-            self.sock.send_multipart([peer, control.pack("table", table=st.table.to_wire() if newer else None)])
+                st.router_version = version
+            newer = version != st.table.version
+            self._reply(peer, "table", table=st.table.to_wire() if newer else None)
         elif kind == "status":
             status = st.status()
             status["rollout"] = self.rollout.status() if self.rollout is not None else None
-            self.sock.send_multipart([peer, control.pack("status", status=status)])
-        elif kind in ("apply", "drain", "resume"):
+            self._reply(peer, "status", status=status)
+        else:  # apply, drain, resume
             self._admin(peer, kind, msg)
-        else:
-            self.sock.send_multipart([peer, control.pack("error", message=f"unknown kind {kind!r}")])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -9,6 +10,13 @@ from services.controlplane.traffic import Quotas, assign
 from shared.config import ClusterConfig
 from shared.control import RoutingTable
 from shared.protocol import ModelInfo
+
+log = logging.getLogger("robion.control")
+
+
+def valid_limit(value: object) -> bool:
+    """A robot limit C_i is a positive integer, as in the config; msgpack true is not an integer here."""
+    return isinstance(value, int) and not isinstance(value, bool) and value > 0
 
 
 @dataclass
@@ -42,7 +50,13 @@ class ClusterState:
 
     def register(self, name: str, device: str, models: dict[str, ModelInfo], now: float | None = None,
                  limits: dict[str, int] | None = None) -> None:
-        self.measured_limits.update(limits or {})
+        # One bad measured limit (0, negative, a fraction, inf, NaN) would make the traffic plan
+        # invalid for every model, so it is ignored; the executor's valid limits still count.
+        limits = limits or {}
+        bad = {m: c for m, c in limits.items() if not valid_limit(c)}
+        if bad:
+            log.warning("executor %s reported robot limits that are not positive integers, ignored: %s", name, bad)
+        self.measured_limits.update({m: c for m, c in limits.items() if valid_limit(c)})
         self.described.update(models)
         old = self.executors.get(name)
         self.executors[name] = ExecutorState(name, device, models, now or time.monotonic(),

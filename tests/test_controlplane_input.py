@@ -1,0 +1,159 @@
+"""The control plane answers bad input with a clear error and keeps serving.
+
+A real control plane runs on a loopback socket in a thread; executors and routers are stood in
+for by the messages the real ones send (shared/control.py), with one field broken at a time.
+"""
+
+import math
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import yaml
+
+from shared.cluster import control_request, control_status
+from tests.helpers import TOY_INFO, cluster_config, free_ports, start_control_plane
+
+ROOT = Path(__file__).resolve().parent.parent
+INFO = TOY_INFO
+# Short enough that a missing reply fails fast; a reply from a loopback plane takes milliseconds.
+WAIT_S = 2.0
+
+
+@pytest.fixture
+def plane(tmp_path):
+    """A real control plane whose models have populations but no configured limits (measured ones count)."""
+    path, data = cluster_config(tmp_path)
+    for m, robots in zip(data["models"], (4, 2)):
+        m["robots"] = robots
+    cfg, stop, t = start_control_plane(path, data)
+    yield cfg.control.bind, path, data, t
+    stop.set()
+    t.join(10)
+
+
+def request(address: str, kind: str, **fields) -> dict | None:
+    return control_request(address, kind, timeout_s=WAIT_S, **fields)
+
+
+def assert_bad_request(reply: dict | None, field: str) -> None:
+    assert reply is not None, "no reply: the sender waited until its timeout"
+    assert reply["kind"] == "error" and reply["code"] == "BAD_REQUEST", reply
+    assert field in reply["message"], reply
+
+
+# ----------------------------------------------------------------- A: timeouts
+
+
+@pytest.mark.parametrize("timeout_s", [-1.0, 0.0, math.nan, math.inf])
+def test_control_request_refuses_a_timeout_that_is_not_positive_and_finite(timeout_s):
+    """A negative timeout made poll() wait forever; zero never waited for an answer at all."""
+    (port,) = free_ports(1)  # nothing listens there: the request can only end by its timeout
+    outcome: list = []
+
+    def call():
+        try:
+            outcome.append(control_request(f"tcp://127.0.0.1:{port}", "status", timeout_s=timeout_s))
+        except Exception as exc:
+            outcome.append(exc)
+
+    t = threading.Thread(target=call, daemon=True)
+    t.start()
+    t.join(WAIT_S)
+    assert not t.is_alive(), f"control_request(timeout_s={timeout_s}) is still waiting"
+    assert isinstance(outcome[0], ValueError) and "timeout_s" in str(outcome[0]), outcome
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan"])
+def test_ctl_refuses_a_timeout_that_is_not_positive(plane, value):
+    address, path, data, _ = plane
+    res = subprocess.run([sys.executable, "-m", "shared.cli", "ctl", "status", "-c", str(path), "--timeout", value],
+                         capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    assert "--timeout" in res.stderr and "positive" in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr, res.stderr
+
+
+# ----------------------------------------------------------------- B: malformed messages
+
+
+REGISTER = {"executor": "ex0", "device": "cpu", "models": {"toy-a": INFO}}
+
+
+@pytest.mark.parametrize("kind, fields, field", [
+    ("register", {k: v for k, v in REGISTER.items() if k != "executor"}, "executor"),
+    ("register", {**REGISTER, "executor": 7}, "executor"),
+    ("register", {k: v for k, v in REGISTER.items() if k != "models"}, "models"),
+    ("register", {**REGISTER, "models": ["toy-a"]}, "models"),
+    ("register", {**REGISTER, "models": {"toy-a": {"cameras": ["cam0"]}}}, "models"),
+    ("register", {**REGISTER, "models": {"toy-a": {**INFO, "state_dim": "four"}}}, "models"),
+    ("register", {**REGISTER, "limits": ["toy-a", 4]}, "limits"),
+    ("table_get", {"role": "router", "version": "3"}, "version"),
+    ("table_get", {"role": "router", "version": 2.5}, "version"),
+    ("table_get", {"role": "router", "version": None}, "version"),
+    ("heartbeat", {}, "executor"),
+    ("heartbeat", {"executor": "ex0", "depths": [1, 2]}, "depths"),
+    ("deregister", {}, "executor"),
+    ("deregister", {"executor": ["ex0"]}, "executor"),
+], ids=["register-no-executor", "register-executor-not-str", "register-no-models", "register-models-not-map",
+        "register-model-info-incomplete", "register-model-info-mistyped", "register-limits-not-map",
+        "table_get-version-str", "table_get-version-float", "table_get-version-null", "heartbeat-no-executor",
+        "heartbeat-depths-not-map", "deregister-no-executor", "deregister-executor-not-str"])
+def test_malformed_control_message_is_answered_bad_request(plane, kind, fields, field):
+    address, _, _, t = plane
+    assert_bad_request(request(address, kind, **fields), field)
+    # Nothing was half-done, and the plane still serves well-formed messages.
+    status = control_status(address, WAIT_S)
+    assert status is not None and status["executors"] == {} and status["router"]["version"] == -1
+    assert request(address, "register", **REGISTER)["kind"] == "registered"
+    assert t.is_alive()
+
+
+def test_well_formed_control_messages_are_answered_as_before(plane):
+    """What the real executor and router send: only register and table_get are answered (and an unknown heartbeat)."""
+    address, _, _, _ = plane
+    assert request(address, "heartbeat", executor="ex0", depths={}) == {"kind": "reregister"}
+    reply = request(address, "register", **REGISTER, limits={"toy-a": 4})
+    assert reply == {"kind": "registered", "version": reply["version"]}
+    assert control_request(address, "heartbeat", timeout_s=0.3, executor="ex0", depths={"toy-a": 0}) is None
+    table = request(address, "table_get", version=-1, role="router")
+    assert table["kind"] == "table" and table["table"]["version"] == reply["version"]
+    assert request(address, "table_get", version=reply["version"], role="router") == {"kind": "table", "table": None}
+    assert control_request(address, "deregister", timeout_s=0.3, executor="ex0") is None
+    assert control_status(address, WAIT_S)["executors"] == {}
+
+
+def test_admin_errors_carry_a_code(plane, tmp_path):
+    address, _, data, _ = plane
+    reply = request(address, "drain", executor="nope")
+    assert reply["kind"] == "error" and reply["code"] == "UNKNOWN_EXECUTOR" and "nope" in reply["message"], reply
+    reply = request(address, "apply", config="models: [")
+    assert reply["kind"] == "error" and reply["code"] == "BAD_CONFIG" and "YAML" in reply["message"], reply
+    reply = request(address, "apply", config=yaml.safe_dump({**data, "engine": {"kind": "monolithic", "max_batch": 4}}))
+    assert reply["kind"] == "error" and reply["code"] == "RESTART_REQUIRED" and "max_batch" in reply["message"], reply
+    reply = request(address, "nonsense")
+    assert reply["kind"] == "error" and reply["code"] == "BAD_REQUEST" and "nonsense" in reply["message"], reply
+
+
+# ----------------------------------------------------------------- C: robot limits
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, math.inf, math.nan, True, "4"],
+                         ids=["zero", "negative", "fraction", "inf", "nan", "bool", "str"])
+def test_invalid_measured_limits_are_ignored_and_valid_ones_kept(plane, bad):
+    address, _, data, t = plane
+    population = {m["name"]: m["robots"] for m in data["models"]}
+    both = {"toy-a": INFO, "toy-b": INFO}
+    reply = request(address, "register", executor="ex0", device="cpu", models=both, limits={"toy-b": 4})
+    assert reply is not None and reply["kind"] == "registered", reply
+    # ex1 reports a bad limit for toy-b next to a valid one for toy-a, in the same message.
+    reply = request(address, "register", executor="ex1", device="cpu", models=both, limits={"toy-a": 4, "toy-b": bad})
+    assert reply is not None and reply["kind"] == "registered", reply
+    status = control_status(address, WAIT_S)
+    assert status["limits"] == {"toy-a": 4, "toy-b": 4}
+    table = status["table"]
+    assert table["limits"] == {"toy-a": 4, "toy-b": 4}
+    assert {m: sum(q.values()) for m, q in table["quotas"].items()} == population, table["quotas"]
+    assert t.is_alive()
