@@ -177,6 +177,10 @@ class ExecutorIO:
                     self.register()
                 elif kind == "load":
                     self._start_reload(msg)
+                elif kind == "error":
+                    # The control plane refused something we sent (e.g. a registration it cannot
+                    # read, which would leave us off the routing table): say so where operators look.
+                    log.error("the control plane refused our message: %s (%s)", msg.get("message"), msg.get("code"))
         if self._reregister.is_set() and not self._leaving:
             self._reregister.clear()
             self.register()
