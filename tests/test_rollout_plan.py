@@ -1,4 +1,5 @@
-"""What `robion ctl apply` may change live (the rest is refused: it is read at start-up)."""
+"""What `robion ctl apply` may change live (the rest is refused: it is read at start-up), and how a
+rollout steps past an executor that leaves during its change."""
 
 from services.controlplane.rollout import restart_only_changes
 from shared.config import config_from_dict
@@ -32,3 +33,51 @@ def test_start_up_settings_are_named():
         "engine.kind: 'monolithic' -> 'robion'", "engine.max_batch: 2 -> 4", "router.request_timeout_s: 30.0 -> 5.0",
         "control.heartbeat_s: 0.5 -> 1.0", "control.limits.target: 0.98 -> 0.95", "executors.ex0.device: 'cpu' -> 'cuda:0'"]
 
+
+
+def _state_with(names: list[str]):
+    from services.controlplane.state import ClusterState
+    from shared.protocol import ModelInfo
+
+    c = cfg()
+    st = ClusterState(c)
+    info = ModelInfo.from_wire({"cameras": ["cam0"], "image_shape": [8, 8, 3], "state_dim": 4, "horizon": 2,
+                                "action_dim": 2, "deadline_ms": 500.0, "arch": "pi0"})
+    for name in names:
+        st.register(name, "cpu", {"a": info}, now=0.0)
+    return c, st
+
+
+def test_an_executor_that_leaves_during_its_change_fails_the_step_without_the_full_timeout():
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _state_with(["ex0", "ex1"])
+    loads = []
+    ro = Rollout([Step("ex0", [c.model("a"), c.model("b")]), Step("ex1", [c.model("b")])], timeout_s=600, gone_s=30)
+    ro.tick(st, lambda ex, models: loads.append(ex), now=1.0)  # ex0 drained
+    st.router_version = st.table.version
+    ro.tick(st, lambda ex, models: loads.append(ex), now=2.0)  # the load goes out
+    assert loads == ["ex0"] and ro.current.executor == "ex0"
+    st.deregister("ex0")  # it dies while reloading
+    ro.tick(st, lambda ex, models: loads.append(ex), now=3.0)
+    ro.tick(st, lambda ex, models: loads.append(ex), now=20.0)
+    assert ro.current.executor == "ex0"  # within the grace period: still waiting
+    ro.tick(st, lambda ex, models: loads.append(ex), now=34.0)
+    assert ro.failed == ["ex0"] and ro.current.executor == "ex1"  # 31 s gone, not 600 s
+
+
+def test_a_brief_absence_does_not_fail_the_step():
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _state_with(["ex0"])
+    ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
+    ro.tick(st, lambda ex, models: None, now=1.0)
+    info = st.executors["ex0"].models["a"]
+    st.deregister("ex0")
+    ro.tick(st, lambda ex, models: None, now=2.0)
+    st.register("ex0", "cpu", {"a": info}, now=25.0)  # back before the grace period ends
+    ro.tick(st, lambda ex, models: None, now=26.0)
+    st.deregister("ex0")
+    ro.tick(st, lambda ex, models: None, now=40.0)  # gone again: the count starts over
+    ro.tick(st, lambda ex, models: None, now=60.0)
+    assert ro.failed == [] and ro.current.executor == "ex0"

@@ -89,9 +89,13 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
 
 
 class Rollout:
-    def __init__(self, steps: list[Step], timeout_s: float = 600.0):
+    def __init__(self, steps: list[Step], timeout_s: float = 600.0, gone_s: float = 30.0):
         self.pending = list(steps)
         self.timeout_s = timeout_s
+        # An executor that is off the registry this long during its change (it died or lost the
+        # control plane while reloading) fails its step, instead of the rollout waiting out timeout_s.
+        self.gone_s = gone_s
+        self._gone_since: float | None = None
         self.done_steps: list[str] = []
         self.failed: list[str] = []
 
@@ -111,22 +115,41 @@ class Rollout:
         if not step.started:
             if step.executor not in state.executors:
                 log.warning("executor %s is gone; skipping its placement change", step.executor)
-                self.failed.append(step.executor)
-                self.pending.pop(0)
+                self._skip(step)
                 return
             step.started = now
             state.set_draining(step.executor, True)
             step.drained_version = state.table.version
-        elif not step.loading and state.router_version >= step.drained_version:
-            # Only once the router routes by the drained table can no new request reach the executor.
+            return
+        if step.executor in state.executors:
+            self._gone_since = None
+        elif self._gone(now) > self.gone_s:
+            log.error("executor %s left during its placement change (off the registry for %.0f s); skipping it",
+                      step.executor, self._gone(now))
+            self._skip(step)
+            return
+        if not step.loading and step.executor in state.executors and state.router_version >= step.drained_version:
+            # Only once the router routes by the drained table can no new request reach the executor
+            # (and a load sent while it is off the registry would be dropped by the socket).
             step.loading = True
             send_load(step.executor, step.models)
             log.info("placement change: %s drained, loading %s", step.executor, [m.name for m in step.models])
         elif now - step.started > self.timeout_s:
             log.error("executor %s did not reload within %.0f s; resuming it as it is", step.executor, self.timeout_s)
             state.set_draining(step.executor, False)
-            self.failed.append(step.executor)
-            self.pending.pop(0)
+            self._skip(step)
+
+    def _skip(self, step: Step) -> None:
+        self.failed.append(step.executor)
+        self.pending.pop(0)
+        self._gone_since = None
+
+    def _gone(self, now: float) -> float:
+        """Seconds the current step's executor has been off the registry (counted from the first tick
+        that saw it gone); the tick that sees it back resets the count."""
+        if self._gone_since is None:
+            self._gone_since = now
+        return now - self._gone_since
 
     def on_register(self, state: ClusterState, executor: str, models: list[str]) -> None:
         step = self.current
