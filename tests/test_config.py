@@ -123,8 +123,9 @@ def test_placement_errors(placement, message):
 def test_placement_must_fit_device_memory():
     from shared.placement import GIB, model_bytes
 
-    # The estimate covers the peaks measured on the H100 (docs/RESULTS.md, model zoo: batch 4).
-    for arch, peak_gib in (("pi0", 6.46), ("smolvla", 1.20), ("groot_n15", 4.98), ("xr0", 9.40)):
+    # The estimate covers the peaks measured on the H100 (docs/RESULTS.md, model zoo: batch 4, with the
+    # folded norm-weight copies that batches 1 and 2 made in the same process).
+    for arch, peak_gib in (("pi0", 6.83), ("smolvla", 1.32), ("groot_n15", 4.98), ("xr0", 9.40)):
         assert peak_gib * GIB < model_bytes(arch, "full", 4) < 1.8 * peak_gib * GIB, arch  # conservative, not wasteful
     data = {"models": [{"name": "pi0", "arch": "pi0", "size": "full"}, {"name": "xr0", "arch": "xr0", "size": "full"}],
             "executors": [{"name": "g0", "device": "cuda:0", "models": ["pi0"], "memory_gb": 80},
