@@ -1,6 +1,7 @@
 """Does a placement fit? Device memory each executor's models need, estimated before loading.
 
-Per model: weights (bf16 on a GPU) + the engine's static buffers (inputs, handoff twice: the
+Per model: weights (bf16 on a GPU) + the copies of the action stage's QKV and gate/up weights
+with the norm weights folded in (``layers.folded_weight``) + the engine's static buffers (inputs, handoff twice: the
 VLM output and the action input, outputs) for every batch size up to max_batch + a working
 margin for the graphs' activation pools (a share of the weights plus a per-batch amount,
 chosen to cover the zoo's measured peaks on the H100, where SmolVLA's 512x512 vision tower
@@ -27,7 +28,7 @@ def model_bytes(arch: str, size: str, max_batch: int, dtype_bytes: int = 2) -> i
     from shared.models.registry import build_meta
 
     model = build_meta(arch, size)
-    weights = sum(p.numel() for p in model.parameters()) * dtype_bytes
+    weights = (sum(p.numel() for p in model.parameters()) + _folded_params(model)) * dtype_bytes
     buffers = 0
     b = 1
     while b <= max_batch:
@@ -39,6 +40,23 @@ def model_bytes(arch: str, size: str, max_batch: int, dtype_bytes: int = 2) -> i
         buffers += 2 * handoff + 2 * inputs + outputs
         b *= 2
     return int(weights * (1 + ACTIVATION_SHARE) + ACTIVATION_PER_BATCH * max_batch + buffers)
+
+
+def _folded_params(model) -> int:
+    """Parameters of the norm-folded weight copies that the fused action stages make: the QKV (or
+    query) and gate/up weights of every action layer with an RMSNorm before its MLP (a slight
+    over-count: the first layer's QKV input never has row statistics)."""
+    from shared.models.layers import RMSNorm
+
+    n = 0
+    for name in getattr(model, "ACTION_MODULES", ()):
+        for mod in getattr(model, name).modules():
+            if not isinstance(getattr(mod, "mlp_norm", None), RMSNorm) or not hasattr(mod.mlp, "gate_up"):
+                continue
+            n += mod.mlp.gate_up.weight.numel()
+            lin = getattr(getattr(mod, "attn", None), "qkv", None) or getattr(mod, "q", None)
+            n += lin.weight.numel() if lin is not None else 0
+    return n
 
 
 def executor_bytes(cfg: ClusterConfig, executor: str) -> int:

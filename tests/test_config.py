@@ -132,7 +132,7 @@ def test_placement_must_fit_device_memory():
                           {"name": "g1", "device": "cuda:1", "models": ["pi0", "xr0"], "memory_gb": 16}]}
     with pytest.raises(ConfigError) as e:
         config_from_dict(data)
-    assert str(e.value).startswith("executors[1].models: the models placed on g1 need about 19.3 GiB")
+    assert str(e.value).startswith("executors[1].models: the models placed on g1 need about 19.7 GiB")
     assert "but it has 16.0 GiB" in str(e.value)
     data["executors"][1]["memory_gb"] = 24
     config_from_dict(data)
