@@ -5,7 +5,8 @@ executor -> control plane: register {executor, device, models: {name: ModelInfo}
                            heartbeat {executor, depths}  (answered only by reregister, when unknown)
                            deregister {executor}         (not answered)
 router   -> control plane: table_get {version, role}  -> table {table: {version, models, routes, ...} or None}
-anyone   -> control plane: status                    -> status {executors, table, router}
+anyone   -> control plane: status                    -> status {executors, table, router, expected, limits,
+                                                                ready, rollout}
 operator -> control plane: apply {config}            -> applied {steps, version}
                            drain / resume {executor} -> ok {version}
 executor -> router (backend, empty robot frame): executor_hello {executor}
