@@ -1,6 +1,6 @@
 """Control messages between services (single msgpack frames, never seen by robots).
 
-executor -> control plane: register {executor, device, models: {name: ModelInfo}, limits: {name: int}}
+executor -> control plane: register {executor, device, instance, models: {name: ModelInfo}, limits: {name: int}}
                                                      -> registered {version}
                            heartbeat {executor, depths}  (answered only by reregister, when unknown)
                            deregister {executor}         (not answered)

@@ -35,16 +35,20 @@ def test_start_up_settings_are_named():
 
 
 
+def _info():
+    from shared.protocol import ModelInfo
+
+    return ModelInfo.from_wire({"cameras": ["cam0"], "image_shape": [8, 8, 3], "state_dim": 4, "horizon": 2,
+                                "action_dim": 2, "deadline_ms": 500.0, "arch": "pi0"})
+
+
 def _state_with(names: list[str]):
     from services.controlplane.state import ClusterState
-    from shared.protocol import ModelInfo
 
     c = cfg()
     st = ClusterState(c)
-    info = ModelInfo.from_wire({"cameras": ["cam0"], "image_shape": [8, 8, 3], "state_dim": 4, "horizon": 2,
-                                "action_dim": 2, "deadline_ms": 500.0, "arch": "pi0"})
     for name in names:
-        st.register(name, "cpu", {"a": info}, now=0.0)
+        st.register(name, "cpu", {"a": _info()}, now=0.0, instance=f"{name}-1")
     return c, st
 
 
@@ -81,3 +85,40 @@ def test_a_brief_absence_does_not_fail_the_step():
     ro.tick(st, lambda ex, models: None, now=40.0)  # gone again: the count starts over
     ro.tick(st, lambda ex, models: None, now=60.0)
     assert ro.failed == [] and ro.current.executor == "ex0"
+
+
+def test_an_executor_that_restarts_during_its_change_is_sent_the_load_again():
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _state_with(["ex0"])
+    loads = []
+    ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
+
+    def tick(now):
+        ro.tick(st, lambda ex, models: loads.append(ex), now=now)
+
+    tick(1.0)
+    st.router_version = st.table.version
+    tick(2.0)
+    assert loads == ["ex0"]
+    # The same process re-registering its old set (a heartbeat hiccup): keep waiting, no second load.
+    st.register("ex0", "cpu", {"a": _info()}, now=3.0, instance="ex0-1")
+    ro.on_register(st, "ex0", ["a"])
+    st.router_version = st.table.version
+    tick(4.0)
+    assert loads == ["ex0"]
+    # It crashes while loading, drops off the registry, and a new process registers its old set
+    # (routed again, not draining): it is drained again, then loaded again.
+    st.deregister("ex0")
+    tick(4.5)
+    st.register("ex0", "cpu", {"a": _info()}, now=5.0, instance="ex0-2")
+    st.router_version = st.table.version  # the router has picked up the table that routes to it
+    ro.on_register(st, "ex0", ["a"])
+    assert st.executors["ex0"].draining
+    tick(6.0)
+    assert loads == ["ex0"]  # not before the router routes by the drained table
+    st.router_version = st.table.version
+    tick(7.0)
+    assert loads == ["ex0", "ex0"] and ro.failed == [] and ro.current.executor == "ex0"
+    ro.on_register(st, "ex0", ["a", "b"])  # it comes back with the new set: the step is done
+    assert ro.finished and ro.done_steps == ["ex0"] and not st.executors["ex0"].draining

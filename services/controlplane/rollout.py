@@ -28,6 +28,7 @@ class Step:
     started: float = 0.0
     drained_version: int = 0  # the table version without this executor's routes
     loading: bool = False
+    instance: str = ""  # the executor process the load was sent to
 
 
 # Settings `apply` changes live: the models (placement, populations, rates, limits, weights),
@@ -132,6 +133,7 @@ class Rollout:
             # Only once the router routes by the drained table can no new request reach the executor
             # (and a load sent while it is off the registry would be dropped by the socket).
             step.loading = True
+            step.instance = state.executors[step.executor].instance
             send_load(step.executor, step.models)
             log.info("placement change: %s drained, loading %s", step.executor, [m.name for m in step.models])
         elif now - step.started > self.timeout_s:
@@ -156,7 +158,16 @@ class Rollout:
         if step is None or step.executor != executor or not step.loading:
             return
         if sorted(models) != sorted(m.name for m in step.models):
-            return  # a re-registration with the old set (e.g. a heartbeat hiccup): keep waiting
+            ex = state.executors.get(executor)
+            if ex is not None and step.instance and ex.instance != step.instance:
+                # A new process with its old model set: the executor restarted and never got (or
+                # lost) the load. Drain it again and send the load again, as at the step's start.
+                log.warning("executor %s restarted during its placement change; loading %s again", executor,
+                            [m.name for m in step.models])
+                step.loading = False
+                state.set_draining(executor, True)
+                step.drained_version = state.table.version
+            return  # the same process re-registering its old set (e.g. a heartbeat hiccup): keep waiting
         state.set_draining(executor, False)
         log.info("placement change: %s serves %s again (table v%d)", executor, sorted(models), state.table.version)
         self.done_steps.append(executor)

@@ -195,7 +195,10 @@ class ControlPlane:
                                      f"({type(exc).__name__}: {exc})") from None
             # Each limit's value is checked by ClusterState.register: a bad one is ignored, not fatal.
             limits = {str(m): c for m, c in _mapping(msg, "limits").items()}
-            st.register(name, str(msg.get("device", "")), models, limits=limits)
+            instance = msg.get("instance", "")
+            if not isinstance(instance, str):
+                raise BadRequest(f"instance: expected a string, got {_kind_of(instance)}")
+            st.register(name, str(msg.get("device", "")), models, limits=limits, instance=instance)
             log.info("executor %s registered on %s with %s (table v%d)", name, msg.get("device"),
                      sorted(models), st.table.version)
             if self.rollout is not None:

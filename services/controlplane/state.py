@@ -27,6 +27,7 @@ class ExecutorState:
     last_seen: float
     depths: dict[str, int] = field(default_factory=dict)
     draining: bool = False  # registered and serving what it holds, but routed nothing new
+    instance: str = ""  # the executor process's token: another one after a restart
 
 
 class ClusterState:
@@ -49,7 +50,7 @@ class ClusterState:
         return self.cfg.control.heartbeat_s * self.cfg.control.missed_heartbeats
 
     def register(self, name: str, device: str, models: dict[str, ModelInfo], now: float | None = None,
-                 limits: dict[str, int] | None = None) -> None:
+                 limits: dict[str, int] | None = None, instance: str = "") -> None:
         # One bad measured limit (0, negative, a fraction, inf, NaN) would make the traffic plan
         # invalid for every model, so it is ignored; the executor's valid limits still count.
         limits = limits or {}
@@ -60,7 +61,7 @@ class ClusterState:
         self.described.update(models)
         old = self.executors.get(name)
         self.executors[name] = ExecutorState(name, device, models, now or time.monotonic(),
-                                             draining=old.draining if old else False)
+                                             draining=old.draining if old else False, instance=instance)
         self._rebuild()
 
     def set_draining(self, name: str, draining: bool) -> bool:

@@ -11,6 +11,7 @@ import logging
 import queue
 import threading
 import time
+import uuid
 
 import numpy as np
 import zmq
@@ -79,6 +80,9 @@ class ExecutorIO:
         self.slot = slot
         self.served: dict[str, ServedInput] = hosted.inputs  # replaced whole on a reload, never mutated
         self.limits = limits or {}  # measured robot limits of the models this executor owns
+        # Names this process: a registration with another token is a restarted executor (a rollout
+        # step waiting on this executor's reload must then send the load again).
+        self.instance = uuid.uuid4().hex
         self.in_flight = 0  # requests handed to the engine and not yet answered (I/O thread only)
         self._reload: threading.Thread | None = None
         self._reregister = threading.Event()
@@ -127,7 +131,7 @@ class ExecutorIO:
                 pass
 
     def register(self) -> None:
-        self.ctl.send(control.pack("register", executor=self.name, device=self.device,
+        self.ctl.send(control.pack("register", executor=self.name, device=self.device, instance=self.instance,
                                    models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits))
         # Say hello to the router so its ROUTER socket knows our identity before the first request.
         self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name)])
