@@ -89,6 +89,13 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
     return [s for _, _, s in sorted(steps, key=lambda t: (t[0], t[1], t[2].executor))]
 
 
+def _drain(state: ClusterState, step: Step) -> None:
+    """Route nothing new to the step's executor; its load goes out once the router routes by
+    this table (``drained_version``)."""
+    state.set_draining(step.executor, True)
+    step.drained_version = state.table.version
+
+
 class Rollout:
     def __init__(self, steps: list[Step], timeout_s: float = 600.0, gone_s: float = 30.0):
         self.pending = list(steps)
@@ -119,8 +126,7 @@ class Rollout:
                 self._skip(step)
                 return
             step.started = now
-            state.set_draining(step.executor, True)
-            step.drained_version = state.table.version
+            _drain(state, step)
             return
         if step.executor in state.executors:
             self._gone_since = None
@@ -165,8 +171,7 @@ class Rollout:
                 log.warning("executor %s restarted during its placement change; loading %s again", executor,
                             [m.name for m in step.models])
                 step.loading = False
-                state.set_draining(executor, True)
-                step.drained_version = state.table.version
+                _drain(state, step)
             return  # the same process re-registering its old set (e.g. a heartbeat hiccup): keep waiting
         state.set_draining(executor, False)
         log.info("placement change: %s serves %s again (table v%d)", executor, sorted(models), state.table.version)
