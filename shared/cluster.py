@@ -14,7 +14,7 @@ from pathlib import Path
 import zmq
 
 from shared import control
-from shared.config import ClusterConfig, dial_address
+from shared.config import ClusterConfig, dial_address, positive_number
 
 log = logging.getLogger("robion.cluster")
 
@@ -26,7 +26,7 @@ def control_request(address: str, kind: str, timeout_s: float = 1.0, context: zm
     ``timeout_s`` must be positive and finite: zmq's poll() waits forever on a negative timeout
     and does not wait at all on zero, so either would hide a control plane that does not answer.
     """
-    if not (math.isfinite(timeout_s) and timeout_s > 0):
+    if not positive_number(timeout_s):
         raise ValueError(f"timeout_s must be a positive number of seconds, got {timeout_s!r}")
     ctx = context or zmq.Context.instance()
     sock = ctx.socket(zmq.DEALER)

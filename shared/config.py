@@ -21,8 +21,10 @@ class ConfigError(ValueError):
     """A configuration mistake; ``str(err)`` is the message to show the operator."""
 
 
-def _positive(v: Any) -> bool:
-    return math.isfinite(v) and v > 0  # .inf / .nan parse as floats from YAML, and no rate or size is infinite
+def positive_number(v: Any) -> bool:
+    """A finite number above zero: the check of every rate, size, count and timeout setting
+    (``.inf`` / ``.nan`` parse as floats from YAML, and no rate or size is infinite)."""
+    return math.isfinite(v) and v > 0
 
 
 def _non_negative(v: Any) -> bool:
@@ -45,10 +47,11 @@ class ModelConfig:
     seed: int = 0  # seeded random weights; another seed is another fine-tuned variant
     weights: str | None = None  # safetensors file of the model's own state dict
     tokenizer: str | None = None  # tokenizer file; a byte-level tokenizer when absent
-    slo_ms: float = field(default=156.0, metadata=_check(_positive, "expected a positive number"))
+    slo_ms: float = field(default=156.0, metadata=_check(positive_number, "expected a positive number"))
     robots: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))  # population N_i
-    hz: float = field(default=2.0, metadata=_check(_positive, "expected a positive number"))  # request rate per robot
-    limit: int | None = field(default=None, metadata=_check(_positive, "expected a positive integer"))
+    # request rate per robot
+    hz: float = field(default=2.0, metadata=_check(positive_number, "expected a positive number"))
+    limit: int | None = field(default=None, metadata=_check(positive_number, "expected a positive integer"))
     # limit = C_i, robots of this model one GPU sustains at the target SLO attainment (measured when absent)
 
 
@@ -57,7 +60,7 @@ class ExecutorConfig:
     name: str
     models: list[str]
     device: str = "cpu"  # "cpu" or "cuda:N"
-    memory_gb: float | None = field(default=None, metadata=_check(_positive, "expected a positive number"))
+    memory_gb: float | None = field(default=None, metadata=_check(positive_number, "expected a positive number"))
     # device memory to plan with; checked against the models' estimated needs (see shared/placement.py)
     metrics_port: int | None = field(default=None, metadata=_check(_non_negative, "expected a port number (0 disables)"))
     # None: 9110 + the executor's position in this list
@@ -71,7 +74,7 @@ class EngineConfig:
     kind: str = "monolithic"  # which engine runs the stages: a key of ENGINES in services/executor/engine.py
     max_batch: int = field(default=2, metadata=_check(_power_of_two, "expected a power of two (1, 2, 4, ...)"))
     policy: str = "esf"  # esf (earliest-SLO-first), rr (round-robin), lqf (largest-queue-first)
-    max_queue: int = field(default=256, metadata=_check(_positive, "expected a positive integer"))
+    max_queue: int = field(default=256, metadata=_check(positive_number, "expected a positive integer"))
     shed_expired: bool = True  # answer DEADLINE_EXCEEDED instead of running requests already late
     seed: int = 0  # noise generator seed
     # Lockstep engines (robion and its comparison engines):
@@ -79,7 +82,7 @@ class EngineConfig:
     static_sms: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))
     sm_table: str | None = None  # SM table JSON to use (profiled and written there when missing)
     profile_dir: str = "state/profiles"  # where SM tables are cached when sm_table is not given
-    profile_repeats: int = field(default=5, metadata=_check(_positive, "expected a positive integer"))
+    profile_repeats: int = field(default=5, metadata=_check(positive_number, "expected a positive integer"))
     graphs: bool = True  # CUDA graphs per (model, stage, batch, SM level); false: eager stages (debugging)
     telemetry_file: str | None = None  # append one JSON line per lockstep
     # Comparison engines (services/executor/baselines, docs/baselines.md):
@@ -87,7 +90,7 @@ class EngineConfig:
     # disjoint: SMs of the VLM partition (a multiple of 8); 0: profiled at start-up and cached in profile_dir
     running_batch: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))
     # procdisagg: most requests in the action process's running batch; 0: 4 x max_batch
-    handoff_slots: int = field(default=4, metadata=_check(_positive, "expected a positive integer"))
+    handoff_slots: int = field(default=4, metadata=_check(positive_number, "expected a positive integer"))
     # procdisagg: groups of max_batch handoff slots per model in the inter-stage buffer
     procdisagg_workers: str = "process"  # procdisagg: stages as "process"es (CUDA IPC) or "thread"s (debugging)
     # interdisagg (both required there): the devices of its VLM workers and of its action workers,
@@ -102,8 +105,9 @@ class RouterConfig:
     bind: str = "tcp://127.0.0.1:5555"  # robots connect here (DEALER)
     backend: str = "tcp://127.0.0.1:5556"  # executors connect here (DEALER)
     backend_connect: str | None = None  # address executors dial when it differs from the bind (containers)
-    max_message_bytes: int = field(default=16 * 1024 * 1024, metadata=_check(_positive, "expected a positive integer"))
-    request_timeout_s: float = field(default=30.0, metadata=_check(_positive, "expected a positive number"))
+    max_message_bytes: int = field(default=16 * 1024 * 1024,
+                                   metadata=_check(positive_number, "expected a positive integer"))
+    request_timeout_s: float = field(default=30.0, metadata=_check(positive_number, "expected a positive number"))
     metrics_port: int = field(default=9100, metadata=_check(_non_negative, "expected a port number (0 disables)"))
 
 
@@ -113,9 +117,9 @@ class LimitsConfig:
 
     auto: bool = False  # measure at executor start-up (cached in control.state_dir/limits.json)
     target: float = field(default=0.98, metadata=_check(lambda v: 0 < v <= 1, "expected a share in (0, 1]"))
-    epochs: int = field(default=5, metadata=_check(_positive, "expected a positive integer"))
-    duration_s: float = field(default=10.0, metadata=_check(_positive, "expected a positive number"))
-    max_robots: int = field(default=256, metadata=_check(_positive, "expected a positive integer"))
+    epochs: int = field(default=5, metadata=_check(positive_number, "expected a positive integer"))
+    duration_s: float = field(default=10.0, metadata=_check(positive_number, "expected a positive number"))
+    max_robots: int = field(default=256, metadata=_check(positive_number, "expected a positive integer"))
     seed: int = 0
     network: str = "wifi7"
     progress: bool = True
@@ -125,12 +129,12 @@ class LimitsConfig:
 class ControlConfig:
     bind: str = "tcp://127.0.0.1:5557"
     connect: str | None = None  # address other services dial when it differs from the bind (containers)
-    heartbeat_s: float = field(default=0.5, metadata=_check(_positive, "expected a positive number"))
-    missed_heartbeats: int = field(default=6, metadata=_check(_positive, "expected a positive integer"))
+    heartbeat_s: float = field(default=0.5, metadata=_check(positive_number, "expected a positive number"))
+    missed_heartbeats: int = field(default=6, metadata=_check(positive_number, "expected a positive integer"))
     state_dir: str = "state"
     metrics_port: int = field(default=9101, metadata=_check(_non_negative, "expected a port number (0 disables)"))
     strategy: str = "ip"  # robot-to-GPU assignment: ip (integer program), smg, eps, none (round-robin per request)
-    solve_time_limit_s: float = field(default=5.0, metadata=_check(_positive, "expected a positive number"))
+    solve_time_limit_s: float = field(default=5.0, metadata=_check(positive_number, "expected a positive number"))
     # Share of each robot limit C_i the traffic controller fills (floor(C_i * headroom)); below 1
     # keeps slack under the measured limit, where SLO attainment falls off steeply.
     headroom: float = field(default=1.0, metadata=_check(lambda v: 0 < v <= 1, "expected a share in (0, 1]"))
@@ -141,9 +145,9 @@ class ControlConfig:
 class FleetConfig:
     """The simulated fleet `robion demo` drives."""
 
-    robots: int = field(default=8, metadata=_check(_positive, "expected a positive integer"))
-    hz: float = field(default=2.0, metadata=_check(_positive, "expected a positive number"))
-    duration_s: float = field(default=10.0, metadata=_check(_positive, "expected a positive number"))
+    robots: int = field(default=8, metadata=_check(positive_number, "expected a positive integer"))
+    hz: float = field(default=2.0, metadata=_check(positive_number, "expected a positive number"))
+    duration_s: float = field(default=10.0, metadata=_check(positive_number, "expected a positive number"))
     seed: int = 0
     network: str = "wifi7"
     models: list[str] | None = None  # models the robots use, round-robin; all models when absent

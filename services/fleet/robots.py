@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
@@ -12,6 +11,7 @@ import numpy as np
 import zmq
 
 from shared.client import Completion, RobotClient, wait_any
+from shared.config import positive_number
 from shared.netmodel import NETWORKS
 
 log = logging.getLogger("robion.fleet")
@@ -57,7 +57,7 @@ def check_settings(robots: int, hz: float, duration_s: float, network: str) -> N
     if isinstance(robots, bool) or not isinstance(robots, int) or robots < 1:
         raise ValueError(f"robots: expected a positive integer, got {robots!r}")
     for name, value in (("hz", hz), ("duration", duration_s)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not positive_number(value):
             raise ValueError(f"{name}: expected a positive number, got {value!r}")
     if network not in NETWORKS:
         raise ValueError(f"network: expected one of {', '.join(sorted(NETWORKS))}, got {network!r}")
