@@ -145,20 +145,13 @@ def _ptr(t):
     return t.data_ptr()
 
 
-_FOLDED: dict[int, tuple] = {}
-
-
 def folded_weights(layer) -> tuple:
     """The QKV and gate/up weights with the RMSNorm weights multiplied into their columns
-    (the kernel applies only 1 / rms, to the GEMM's output rows). Made once per layer: 396 MB
-    for pi0's expert, beside the model's own weights, which stay untouched."""
-    key = id(layer)
-    if key not in _FOLDED:
-        with torch.no_grad():
-            qkv = (layer.attn.qkv.weight.float() * layer.attn_norm.weight.float()[None, :]).to(torch.bfloat16)
-            gu = (layer.mlp.gate_up.weight.float() * layer.mlp_norm.weight.float()[None, :]).to(torch.bfloat16)
-        _FOLDED[key] = (qkv.contiguous(), gu.contiguous())
-    return _FOLDED[key]
+    (the kernel applies only 1 / rms, to the GEMM's output rows): main's copies
+    (``layers.folded_weight``, made once per layer, 396 MB for pi0's expert), so the two paths
+    of one process share them."""
+    return (layers.folded_weight(layer.attn.qkv, layer.attn_norm),
+            layers.folded_weight(layer.mlp.gate_up, layer.mlp_norm))
 
 
 def layer_cuda(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: CudaState):

@@ -353,13 +353,9 @@ class PersistentState:
 
 
 def _folded(layer):
-    f = getattr(layer, "_folded", None)
-    if f is None:
-        with torch.no_grad():
-            wqkv = (layer.attn.qkv.weight.float() * layer.attn_norm.weight.float()[None]).to(layer.attn.qkv.weight.dtype)
-            wgu = (layer.mlp.gate_up.weight.float() * layer.mlp_norm.weight.float()[None]).to(layer.mlp.gate_up.weight.dtype)
-        f = layer._folded = (wqkv.contiguous(), wgu.contiguous())
-    return f
+    """QKV and gate/up weights with the norm weights folded in: main's copies (``layers.folded_weight``)."""
+    return (layers.folded_weight(layer.attn.qkv, layer.attn_norm),
+            layers.folded_weight(layer.mlp.gate_up, layer.mlp_norm))
 
 
 def layer_persistent(layer, x, k_out, v_out, rope, bias, k_all, v_all, st: PersistentState):
