@@ -17,7 +17,6 @@ Prints a table last and writes ``norm_fold_ab_<gpu>.json`` (or OUT_NAME) under O
 """
 from __future__ import annotations
 
-import datetime
 import json
 import os
 import statistics
@@ -28,7 +27,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from shared.models import build_model, fused, layers  # noqa: E402
 
-from timing import alternating_ms, capture_checked, pct  # noqa: E402  (this folder)
+from timing import alternating_ms, capture_checked, env_settings, pct, result_header, save_result  # noqa: E402,E501
 
 
 def kernels_in(graph_body) -> int:
@@ -89,15 +88,9 @@ def run_model(arch: str, batches: list[int], iters: int) -> dict:
 
 
 def main():
-    models = os.environ.get("MODELS", "pi0,smolvla").split(",")
-    batches = [int(b) for b in os.environ.get("BATCHES", "1,2").split(",")]
-    iters = int(os.environ.get("ITERS", "100"))
-    res = {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "commit": os.environ.get("ROBION_COMMIT"),
-           "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "iters": iters,
-           "models": {m: run_model(m, batches, iters) for m in models}}
-    name = os.environ.get("OUT_NAME") or "norm_fold_ab_" + res["gpu"].split()[1].lower() + ".json"
-    with open(os.path.join(os.environ.get("OUT", "/tmp"), name), "w") as fh:
-        json.dump(res, fh, indent=1)
+    models, batches, iters = env_settings("pi0,smolvla", "1,2")
+    res = {**result_header(iters), "models": {m: run_model(m, batches, iters) for m in models}}
+    save_result(res, "norm_fold_ab")
     print(f"\naction stage, norms folded vs unfolded, {iters} alternating replays each ({res['gpu']})")
     print(f"{'model':8s} {'b':>2s} {'unfolded p50':>13s} {'folded p50':>11s} {'p99 u/f':>14s} {'kernels u/f':>12s}"
           f" {'rel err':>8s} {'graph-eager':>11s} variant")

@@ -1,5 +1,9 @@
-"""Replay timing shared by the kernel experiments."""
+"""Replay timing and result files shared by the kernel experiments."""
 from __future__ import annotations
+
+import datetime
+import json
+import os
 
 import torch
 
@@ -97,3 +101,24 @@ def route_expert_layers(mode: dict, key: str, make_state, layer_fn) -> None:
         return layer_fn(self, x, k_out, v_out, rope, bias, k_all, v_all, state)
 
     layers.DecoderLayer.forward_fused = forward_fused
+
+
+def env_settings(models: str, batches: str, iters: int = 100) -> tuple[list[str], list[int], int]:
+    """MODELS, BATCHES (comma-separated) and ITERS from the environment, with these defaults."""
+    return (os.environ.get("MODELS", models).split(","), [int(b) for b in os.environ.get("BATCHES", batches).split(",")],
+            int(os.environ.get("ITERS", str(iters))))
+
+
+def result_header(iters: int) -> dict:
+    """GPU, torch, commit (ROBION_COMMIT) and UTC time of a run, for its JSON file."""
+    return {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "commit": os.environ.get("ROBION_COMMIT"),
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "iters": iters}
+
+
+def save_result(res: dict, stem: str) -> str:
+    """Writes ``res`` to OUT (default /tmp) as OUT_NAME or ``<stem>_<gpu model>.json``; returns the path."""
+    name = os.environ.get("OUT_NAME") or f"{stem}_{res['gpu'].split()[1].lower()}.json"
+    path = os.path.join(os.environ.get("OUT", "/tmp"), name)
+    with open(path, "w") as fh:
+        json.dump(res, fh, indent=1)
+    return path

@@ -303,11 +303,32 @@ if triton is not None:
                  o.to(o_ptr.dtype.element_ty), mask=m_ok[:, None])
 
 
+    @triton.jit
+    def _softmax_rows_kernel(s_ptr, bias_ptr, p_ptr, M, L, n_kv, scale, s_sb, s_sm, b_sb, b_sm, p_sb, p_sm,
+                             HAS_BIAS: tl.constexpr, BLOCK_L: tl.constexpr, ROWS: tl.constexpr):
+        # Row softmax of fp32 attention scores (scale, additive bias) to bf16 probabilities,
+        # for ``gemm_attention``: one read of the scores, one write of the probabilities.
+        pid_b = tl.program_id(0)
+        offs_r = tl.program_id(1) * ROWS + tl.arange(0, ROWS)
+        offs_l = tl.arange(0, BLOCK_L)
+        l_ok = offs_l < L
+        mask = (offs_r < M)[:, None] & l_ok[None, :]
+        s = tl.load(s_ptr + pid_b * s_sb + offs_r[:, None] * s_sm + offs_l[None, :], mask=mask, other=0.0) * scale
+        if HAS_BIAS:
+            s += tl.load(bias_ptr + (pid_b // n_kv) * b_sb + offs_r[:, None] * b_sm + offs_l[None, :], mask=mask,
+                         other=0.0).to(tl.float32)
+        s = tl.where(l_ok[None, :], s, -float("inf"))
+        p = tl.exp(s - tl.max(s, 1)[:, None])
+        p = p / tl.sum(p, 1)[:, None]
+        tl.store(p_ptr + pid_b * p_sb + offs_r[:, None] * p_sm + offs_l[None, :], p.to(p_ptr.dtype.element_ty),
+                 mask=mask)
+
+
 # --------------------------------------------------------------------------- API
 
 
 ATTN_CFG = {"max_rows": 1024, "min_lib_programs": 132, "big_rows": 1 << 30, "big_block_m": 64, "big_block_n": 64,
-            "big_warps": 8}
+            "big_warps": 8, "gemm": True, "gemm_max_keys": 2048, "gemm_max_heads": 4}
 
 
 def attention_fits(q: torch.Tensor, rows: int, head_dim: int, heads: int = 1) -> bool:
@@ -319,6 +340,14 @@ def attention_fits(q: torch.Tensor, rows: int, head_dim: int, heads: int = 1) ->
     lib_programs = heads * -(-rows // 128)
     return rows <= ATTN_CFG["max_rows"] and not (ATTN_CFG["min_lib_programs"]
                                                   and lib_programs >= ATTN_CFG["min_lib_programs"])
+
+
+def _bias_args(bias: torch.Tensor | None, dummy: torch.Tensor) -> tuple[torch.Tensor, int, int]:
+    """(pointer, batch stride, row stride) of an additive ``[B or 1, 1, M or 1, L]`` bias for the
+    attention kernels; broadcast dims get stride 0. Without a bias, ``dummy`` fills the pointer."""
+    if bias is None:
+        return dummy, 0, 0
+    return bias, bias.stride(0) if bias.shape[0] > 1 else 0, bias.stride(2) if bias.shape[2] > 1 else 0
 
 
 def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor | None,
@@ -334,11 +363,7 @@ def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: tor
     block_m = ATTN_CFG["big_block_m"] if big else 16
     warps = ATTN_CFG["big_warps"] if big else 4
     has_bias = bias is not None
-    if has_bias:
-        b_sb = bias.stride(0) if bias.shape[0] > 1 else 0
-        b_sm = bias.stride(2) if bias.shape[2] > 1 else 0
-    else:
-        bias, b_sb, b_sm = q, 0, 0
+    bias, b_sb, b_sm = _bias_args(bias, q)
     block_n = (64 if d <= 128 else 32) if not big else ATTN_CFG["big_block_n"]
     # Split the keys so that about one wave of programs covers the GPU: with a single KV
     # head (pi0) there are only ~25 query blocks, and a serial walk over all keys per
@@ -368,6 +393,35 @@ def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: tor
                                                          out.stride(2), NS=n_split, D=d, BLOCK_M=block_m,
                                                          num_warps=4)
     return out
+
+
+def gemm_attention_fits(q: torch.Tensor, rows: int, length: int, head_dim: int, heads: int) -> bool:
+    """Whether ``gemm_attention`` takes this call: many query rows on few KV heads over a short
+    key sequence (a VLM prefix with GQA/MQA folded), where flash kernels get few programs."""
+    return (ATTN_CFG["gemm"] and triton_enabled(q) and q.dtype != torch.float32 and rows > ATTN_CFG["max_rows"]
+            and length <= ATTN_CFG["gemm_max_keys"] and heads <= ATTN_CFG["gemm_max_heads"] and head_dim % 8 == 0)
+
+
+def gemm_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """Attention as two cuBLAS GEMMs around a row softmax: q ``[B, H, M, D]``, k/v ``[B, H, L, D]``,
+    bias ``[B or 1, 1, M or 1, L]`` -> ``[B, H, M, D]``.
+
+    The scores are kept in fp32 (``out_dtype``), so the softmax sees what a flash kernel sees;
+    the probabilities are rounded to bf16 before the second GEMM, as a flash kernel does."""
+    b, h, m, d = q.shape
+    length = k.shape[2]
+    qf, kf, vf = (t.reshape(b * h, t.shape[2], d) for t in (q, k, v))
+    scores = torch.bmm(qf, kf.transpose(1, 2), out_dtype=torch.float32)
+    padded = -(-length // 8) * 8  # 16-byte rows for cuBLAS
+    probs = torch.empty(b * h, m, padded, device=q.device, dtype=q.dtype)[..., :length]
+    has_bias = bias is not None
+    bias, b_sb, b_sm = _bias_args(bias, scores)
+    block_l = triton.next_power_of_2(length)
+    rows = max(1, min(16, 4096 // block_l))
+    _softmax_rows_kernel[(b * h, triton.cdiv(m, rows))](
+        scores, bias, probs, m, length, h, d ** -0.5, scores.stride(0), scores.stride(1), b_sb, b_sm,
+        probs.stride(0), probs.stride(1), HAS_BIAS=has_bias, BLOCK_L=block_l, ROWS=rows, num_warps=4)
+    return torch.bmm(probs, vf).view(b, h, m, d)
 
 
 _SM_COUNT: dict[int, int] = {}

@@ -25,7 +25,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from shared.models.fused import (RowStats, Workspace, attention_fits, gated_act,  # noqa: F401
-                                 linear_residual_splitk, small_attention, split_qkv)
+                                 gemm_attention, gemm_attention_fits, linear_residual_splitk, small_attention,
+                                 split_qkv)
 
 # --------------------------------------------------------------------------- init
 
@@ -234,6 +235,8 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Ten
     qh = q.reshape(b, s * (n_q // n_kv), n_kv, d).transpose(1, 2)
     if attention_fits(q, qh.shape[2], d, b * n_kv):
         o = small_attention(qh, k, v, bias, ws)
+    elif gemm_attention_fits(q, qh.shape[2], k.shape[2], d, b * n_kv):
+        o = gemm_attention(qh, k, v, bias)
     else:
         o = F.scaled_dot_product_attention(qh, k, v, attn_mask=bias)
     return o.transpose(1, 2).reshape(b, s, n_q * d)

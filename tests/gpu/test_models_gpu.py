@@ -164,15 +164,12 @@ def test_full_graph_replay_equals_eager(arch):
     torch.cuda.empty_cache()
 
 
-@needs_cuda
-@pytest.mark.parametrize("b,h,m,length,d,rows", [(1, 1, 400, 611, 256, 1), (2, 1, 408, 611, 256, 408),
-                                                 (2, 5, 150, 227, 64, 150), (3, 8, 32, 208, 128, 32),
-                                                 (1, 4, 20, 33, 64, 0)])
-def test_small_attention_matches_sdpa(b, h, m, length, d, rows):
-    import torch.nn.functional as F
+def _attn_inputs(b, h, m, length, d, rows, seed=0):
+    """q ``[B, H, M, D]`` (strided), k/v as strided views into a KV cache, and a random additive
+    mask over ``rows`` query rows (1: one row for all; 0: no mask)."""
     from shared.models.layers import attn_bias
 
-    g = torch.Generator(device="cuda").manual_seed(0)
+    g = torch.Generator(device="cuda").manual_seed(seed)
     q = torch.randn(b, m, h, d, device="cuda", generator=g).bfloat16().transpose(1, 2)
     kv = torch.randn(b, 2, 2, h, length + 3, d, device="cuda", generator=g).bfloat16()
     k, v = kv[:, 1, 0, :, :length], kv[:, 1, 1, :, :length]
@@ -181,9 +178,49 @@ def test_small_attention_matches_sdpa(b, h, m, length, d, rows):
         allowed = torch.rand(b, rows, length, device="cuda", generator=g) > 0.3
         allowed[..., 0] = True
         bias = attn_bias(allowed, 1, torch.bfloat16)
+    return q, k, v, bias
+
+
+@needs_cuda
+@pytest.mark.parametrize("b,h,m,length,d,rows", [(1, 1, 400, 611, 256, 1), (2, 1, 408, 611, 256, 408),
+                                                 (2, 5, 150, 227, 64, 150), (3, 8, 32, 208, 128, 32),
+                                                 (1, 4, 20, 33, 64, 0)])
+def test_small_attention_matches_sdpa(b, h, m, length, d, rows):
+    import torch.nn.functional as F
+
+    q, k, v, bias = _attn_inputs(b, h, m, length, d, rows)
     out = fused.small_attention(q, k, v, bias)
     ref = F.scaled_dot_product_attention(q.float(), k.float(), v.float(), attn_mask=None if bias is None else bias.float())
     torch.testing.assert_close(out.float(), ref, atol=2e-2, rtol=2e-2)
+
+
+@needs_cuda
+@pytest.mark.parametrize("b,h,m,length,d,rows", [(1, 1, 4480, 560, 256, 1), (2, 1, 4480, 560, 256, 0),
+                                                 (1, 2, 1500, 333, 128, 1500), (2, 1, 1100, 17, 64, 1)])
+def test_gemm_attention_matches_float64(b, h, m, length, d, rows):
+    q, k, v, bias = _attn_inputs(b, h, m, length, d, rows, seed=1)
+    out = fused.gemm_attention(q, k, v, bias)
+    s = q.double() @ k.double().transpose(-1, -2) / d ** 0.5
+    ref = torch.softmax(s if bias is None else s + bias.double(), -1) @ v.double()
+    assert out.shape == (b, h, m, d) and out.dtype == torch.bfloat16
+    assert _rel(out, ref) < 5e-3
+    # The flash kernel SDPA picks, on the same inputs, is no closer to float64.
+    import torch.nn.functional as F
+    lib = F.scaled_dot_product_attention(q, k, v, attn_mask=bias)
+    assert _rel(out, ref) < 2 * _rel(lib, ref) + 1e-3
+
+
+@needs_cuda
+def test_gemm_attention_routing():
+    """The VLM prefix of pi0 (one KV head, 4480 folded rows) takes the GEMM form; few rows
+    (action stages), many KV heads, or long key sequences do not."""
+    q = torch.empty(1, 560, 8, 256, device="cuda", dtype=torch.bfloat16)
+    assert fused.gemm_attention_fits(q, 4480, 560, 256, 1)
+    assert fused.gemm_attention_fits(q, 4480, 560, 256, 4)
+    assert not fused.gemm_attention_fits(q, 408, 611, 256, 1)  # the Triton split-KV kernel's
+    assert not fused.gemm_attention_fits(q, 4480, 560, 256, 8)
+    assert not fused.gemm_attention_fits(q, 4480, 4096, 256, 1)
+    assert not fused.gemm_attention_fits(q.float(), 4480, 560, 256, 1)
 
 
 # --------------------------------------------------------------------------- fused skinny GEMMs
