@@ -44,14 +44,32 @@ class LimitCache:
 
     def read(self) -> dict[str, dict]:
         try:
-            return json.loads(self.path.read_text())
+            data = json.loads(self.path.read_text())
         except (OSError, ValueError):
             return {}
+        if not isinstance(data, dict):  # hand-edited into another shape: nothing in it is usable
+            log.warning("%s is not a JSON object; measuring as if it were empty", self.path)
+            return {}
+        return data
 
     def write(self, key: str, entry: dict) -> None:
         data = self.read()
         data[key] = entry
         write_atomic(self.path, json.dumps(data, indent=2, sort_keys=True))
+
+
+def cached_limit(entry: object) -> int | None:
+    """The limit a cache entry holds, or None when it is not a positive integer.
+
+    The file may be edited by hand (docs/operations.md): 0, negative, fractional, inf and NaN
+    (Python's JSON reads Infinity and NaN), strings and booleans are no limit at all.
+    """
+    limit = entry.get("limit") if isinstance(entry, dict) else None
+    if isinstance(limit, bool) or not isinstance(limit, (int, float)):
+        return None
+    if isinstance(limit, float) and not limit.is_integer():  # also inf and NaN
+        return None
+    return int(limit) if limit > 0 else None
 
 
 def owned_models(cfg: ClusterConfig, executor: str, hosted: list[str]) -> list[str]:
@@ -77,8 +95,13 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
         key = limit_key(device_name(device), served.model.arch, mc.size, mc.hz, cfg.engine.max_batch, served.slo_s * 1e3,
                         cfg.engine.kind, lc.target)
         if key in known:
-            out[name] = int(known[key]["limit"])
-            continue
+            limit = cached_limit(known[key])
+            if limit is not None:
+                out[name] = limit
+                continue
+            # Reporting it would crash this executor (int(NaN)) or mislead the solver (int(2.5)).
+            log.warning("%s: %s has limit %r, not a positive integer; measuring it again",
+                        cache.path, key, known[key].get("limit") if isinstance(known[key], dict) else known[key])
         log.info("measuring the robot limit of %s (%s) at %g Hz ...", name, key, mc.hz)
         t0 = time.monotonic()
         engine_cfg = dataclasses.replace(cfg.engine)

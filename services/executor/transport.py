@@ -21,8 +21,8 @@ from services.executor.scheduler import Request, Result
 from shared import control
 from shared.config import ClusterConfig, ModelConfig, dial_address
 from shared.metrics import ExecutorMetrics
-from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, Timings, decode, encode,
-                             error_frames, header_id, message_bytes, unpack_header)
+from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, RequestId, Timings, decode,
+                             encode, error_frames, header_id, message_bytes, unpack_header)
 
 log = logging.getLogger("robion.executor")
 
@@ -79,6 +79,10 @@ class ExecutorIO:
         self.store = store
         self.slot = slot
         self.served: dict[str, ServedInput] = hosted.inputs  # replaced whole on a reload, never mutated
+        # Models the router may route here: the configured ones and every one served here since
+        # (a later apply may add models). One of them not served now is a routing race (UNAVAILABLE).
+        self._known: set[str] = {m.name for m in cfg.models} | set(self.served)
+        self._gauged: set[str] = set(self.served)  # models with per-model gauge series
         self.limits = limits or {}  # measured robot limits of the models this executor owns
         # Names this process: a registration with another token is a restarted executor (a rollout
         # step waiting on this executor's reload must then send the load again).
@@ -130,9 +134,25 @@ class ExecutorIO:
             except zmq.Again:  # the wake-up pipe is full: the I/O thread has wake-ups pending anyway
                 pass
 
+    def _ctl_send(self, kind: str, **fields) -> bool:
+        """Send to the control plane without ever blocking the I/O thread; False when dropped.
+
+        While the control plane is unreachable ZeroMQ queues 1000 messages for it and a
+        blocking send then waits for it to come back: the robots' requests would go
+        unanswered meanwhile, and SIGTERM would hang in ``withdraw``/``close``. Dropping is
+        safe: heartbeats repeat, a control plane that hears a heartbeat from an executor it
+        does not know asks it to ``reregister``, and ``withdraw``'s waits are bounded.
+        """
+        try:
+            self.ctl.send(control.pack(kind, **fields), zmq.NOBLOCK)
+            return True
+        except zmq.Again:
+            log.debug("control plane unreachable: %s not sent", kind)
+            return False
+
     def register(self) -> None:
-        self.ctl.send(control.pack("register", executor=self.name, device=self.device, instance=self.instance,
-                                   models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits))
+        self._ctl_send("register", executor=self.name, device=self.device, instance=self.instance,
+                       models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits)
         # Say hello to the router so its ROUTER socket knows our identity before the first request.
         self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name)])
 
@@ -192,7 +212,7 @@ class ExecutorIO:
         if now - self._last_beat >= self.cfg.control.heartbeat_s:
             self._last_beat = now
             depths = self.slot.depths()
-            self.ctl.send(control.pack("heartbeat", executor=self.name, depths=depths))
+            self._ctl_send("heartbeat", executor=self.name, depths=depths)
             self._update_gauges(depths)
 
     def _ctl_reply(self, kinds: tuple[str, ...], timeout_s: float) -> dict | None:
@@ -226,7 +246,7 @@ class ExecutorIO:
         t0 = time.monotonic()
         self._leaving = True
         self._ctl_replies.clear()
-        self.ctl.send(control.pack("drain", executor=self.name))
+        self._ctl_send("drain", executor=self.name)
         reply = self._ctl_reply(("ok", "error"), min(self.WITHDRAW_REPLY_S, ack_timeout_s))
         if reply is None:
             log.warning("control plane did not answer our drain: leaving without waiting for the router")
@@ -237,7 +257,7 @@ class ExecutorIO:
             end = t0 + ack_timeout_s
             acked = False
             while not acked and time.monotonic() < end:
-                self.ctl.send(control.pack("status"))
+                self._ctl_send("status")
                 status = self._ctl_reply(("status",), min(0.5, max(0.0, end - time.monotonic())))
                 router = (status or {}).get("status", {}).get("router", {})
                 acked = int(router.get("version", -1)) >= version
@@ -271,20 +291,25 @@ class ExecutorIO:
     def _reload_models(self, configs: list[ModelConfig]) -> None:
         """Off the I/O thread: wait for held requests to be answered, then swap models and engine."""
         names = [mc.name for mc in configs]
+        self._known.update(names)
+        previous = [s.config for s in self.served.values()]
         log.info("reloading with models %s: waiting for %d requests in flight", names, self.in_flight)
         end = time.monotonic() + 60
         while self.in_flight > 0 and time.monotonic() < end:
             time.sleep(0.01)
         self.slot.stop()  # anything still held is answered UNAVAILABLE by the engine's finish
+        # The I/O thread's view (self.served) changes while no engine runs, so a request in
+        # between meets no engine (UNAVAILABLE) rather than a new engine without its model.
         try:
             hosted = self.store.load(configs)
+            self.served = hosted.inputs
             took = self.slot.start(hosted)
         except Exception:
             log.exception("loading %s failed; keeping the previous models", names)
-            hosted = self.store.load([s.config for s in self.served.values()])
+            hosted = self.store.load(previous)
+            self.served = hosted.inputs
             took = self.slot.start(hosted)
         self.metrics.slo_s = {n: s.slo_s for n, s in hosted.inputs.items()}
-        self.served = hosted.inputs
         log.info("now serving %s (engine ready in %.1f s)", sorted(hosted.inputs), took)
         self._reregister.set()
 
@@ -297,14 +322,25 @@ class ExecutorIO:
 
     def close(self) -> None:
         # Leave the routing table now rather than after missed heartbeats.
-        self.ctl.send(control.pack("deregister", executor=self.name))
+        self._ctl_send("deregister", executor=self.name)
         self.ctl.setsockopt(zmq.LINGER, 500)
         for s in (self.backend, self.ctl, self.wake_rx, self.wake_tx):
             s.close()
 
     def _update_gauges(self, depths: dict[str, int]) -> None:
-        for model, depth in depths.items():
-            self.metrics.queue_depth.labels(model).set(depth)
+        served = set(self.served)
+        for model in self._gauged - served:
+            # A reload took the model away: its series would show their last values forever.
+            for gauge in (self.metrics.queue_depth, self.metrics.slo_attainment):
+                try:
+                    gauge.remove(model)
+                except KeyError:
+                    pass
+        # A model with no engine queue (its engine is being replaced) holds nothing: whatever
+        # it held was answered when the old engine stopped.
+        for model in served:
+            self.metrics.queue_depth.labels(model).set(depths.get(model, 0))
+        self._gauged = served
         self._observe_locksteps()
         if self.device.startswith("cuda"):
             import torch
@@ -373,16 +409,32 @@ class ExecutorIO:
                 raise ProtocolError(ErrorCode.BAD_REQUEST, "executors take only infer requests")
             served = self.served.get(msg.model)
             if served is None:
+                if msg.model in self._known:
+                    # Routed by a table older than our model set (a placement change in progress,
+                    # a restart with other models): another executor serves it, so retry.
+                    raise ProtocolError(ErrorCode.UNAVAILABLE, f"model {msg.model!r} is not served by {self.name} now")
                 raise ProtocolError(ErrorCode.UNKNOWN_MODEL, f"model {msg.model!r} is not served by {self.name}")
             self.slot.submit(to_request(msg, served, envelope, arrival))
             self.stats["requests"] += 1
             self.in_flight += 1
         except ProtocolError as exc:
-            self.stats["errors"] += 1
-            model = header.get("model") if rid and isinstance(header.get("model"), str) else ""
-            self.metrics.requests.labels(model if model in self.served else "", exc.code.value.lower()).inc()
-            self.backend.send_multipart([envelope, *error_frames(rid, exc.code, exc.message)], copy=False)
+            self._refuse(envelope, rid, header, exc.code, exc.message, arrival)
         except Exception as exc:  # never let one request take the executor down
             log.exception("failed to accept request %r", rid)
-            self.stats["errors"] += 1
-            self.backend.send_multipart([envelope, *error_frames(rid, ErrorCode.INTERNAL, type(exc).__name__)], copy=False)
+            self._refuse(envelope, rid, header, ErrorCode.INTERNAL, type(exc).__name__, arrival)
+
+    def _refuse(self, envelope: bytes, rid: RequestId, header: dict, code: ErrorCode, message: str, arrival: float) -> None:
+        """Answer a request that never reached the engine, and count it like the engine's errors.
+
+        A refusal (queue full, bad shape, a fault) is an answer with an error: for a served
+        model it is one more request past its SLO, or the attainment would read 1.0 on an
+        executor refusing most of its traffic. Other names share the "" label, so clients
+        cannot grow the number of series.
+        """
+        self.stats["errors"] += 1
+        self.backend.send_multipart([envelope, *error_frames(rid, code, message)], copy=False)
+        model = header.get("model")
+        if isinstance(model, str) and model in self.served:
+            self.metrics.observe_result(model, code.value.lower(), time.monotonic() - arrival, 0, 0, 0)
+        else:
+            self.metrics.requests.labels("", code.value.lower()).inc()

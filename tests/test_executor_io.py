@@ -1,0 +1,248 @@
+"""The executor's I/O thread (services/executor/transport.py) on real sockets, in-process.
+
+A real ``ExecutorIO`` with a real CPU engine serving the toy model is driven by a stand-in
+router: a ZeroMQ ROUTER socket bound where the executor dials the router's backend, sending
+requests exactly as the router forwards them (``[executor, robot envelope, *request]``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import asdict
+
+import numpy as np
+import pytest
+import torch
+import zmq
+
+from services.executor.hosting import EngineSlot, ModelStore
+from services.executor.transport import ExecutorIO
+from shared import control
+from shared.config import load_config
+from shared.metrics import ExecutorMetrics
+from shared.protocol import ErrorCode, InferRequest, decode, encode
+from tests.helpers import cluster_config, free_ports
+
+CPU = torch.device("cpu")
+
+
+class Harness:
+    """An ExecutorIO serving in a thread, and a stand-in router holding the other end of its backend."""
+
+    def __init__(self, tmp_path, models=("toy-a",), control_plane: bool = False, **overrides):
+        # ex1 (never started) hosts every model, so a model ex0 does not serve is still configured.
+        path, data = cluster_config(tmp_path, executors=[{"name": "ex0", "device": "cpu", "models": list(models)},
+                                                         {"name": "ex1", "device": "cpu", "models": ["toy-a", "toy-b"]}],
+                                    **overrides)
+        self.cfg = load_config(path)
+        self.ctx = zmq.Context()
+        self.router = self.ctx.socket(zmq.ROUTER)
+        self.router.setsockopt(zmq.LINGER, 0)
+        self.router.bind(self.cfg.router.backend)
+        self.control: zmq.Socket | None = None  # a stand-in control plane: reads what the executor sends
+        if control_plane:
+            self.control = self.ctx.socket(zmq.ROUTER)
+            self.control.setsockopt(zmq.LINGER, 0)
+            self.control.bind(self.cfg.control.bind)
+        self.store = ModelStore(CPU)
+        hosted = self.store.load([self.cfg.model(m) for m in models])
+        self.slot = EngineSlot(self.cfg.engine, CPU, lambda results: self.io.on_results(results))
+        self.metrics = ExecutorMetrics("ex0", "cpu", {n: s.slo_s for n, s in hosted.inputs.items()})
+        self.io = ExecutorIO("ex0", self.cfg, "cpu", self.store, self.slot, hosted, self.metrics, context=self.ctx)
+        self.slot.start(hosted)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.io.run, args=(self.stop,), name="io", daemon=True)
+        self.thread.start()
+        self._wait_hello()
+        self.replies: dict[object, object] = {}
+        self.closed = False
+
+    def _wait_hello(self) -> None:
+        assert self.router.poll(10_000), "the executor never said hello"
+        self.router.recv_multipart()
+
+    def request(self, rid, model: str = "toy-a") -> InferRequest:
+        io = self.io.served[model].io if model in self.io.served else next(iter(self.io.served.values())).io
+        return InferRequest(id=rid, robot="r0", model=model,
+                            images={c: np.zeros(io.image_shape, np.uint8) for c in io.cameras},
+                            state=np.zeros(io.state_dim, np.float32), instruction="pick")
+
+    def send(self, msg: InferRequest) -> None:
+        self.router.send_multipart([b"ex0", b"robot-0", *encode(msg)], copy=True)
+
+    def collect(self, timeout_s: float) -> None:
+        end = time.monotonic() + timeout_s
+        while self.router.poll(max(1, int((end - time.monotonic()) * 1000))):
+            frames = self.router.recv_multipart()
+            if frames[1] == b"":  # the executor's hello (it says it again when it re-registers)
+                continue
+            assert frames[0] == b"ex0" and frames[1] == b"robot-0"
+            msg = decode(frames[2:])
+            assert msg.id not in self.replies, f"{msg.id!r} answered twice"
+            self.replies[msg.id] = msg
+            if time.monotonic() >= end:
+                break
+
+    def wait_replies(self, ids, timeout_s: float = 30.0) -> None:
+        end = time.monotonic() + timeout_s
+        while not set(ids) <= set(self.replies) and time.monotonic() < end:
+            self.collect(0.05)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.stop.set()
+        self.thread.join(10)
+        if self.thread.is_alive():
+            return  # wedged: leave its sockets (closing them under a blocked send is not safe)
+        self.slot.stop()
+        self.io.drain(1.0)
+        self.io.close()
+        self.router.close()
+        if self.control is not None:
+            self.control.close()
+        self.ctx.term()
+
+    def control_messages(self, timeout_s: float) -> list[dict]:
+        """What the executor sent the stand-in control plane within ``timeout_s``."""
+        out = []
+        end = time.monotonic() + timeout_s
+        while self.control.poll(max(1, int((end - time.monotonic()) * 1000))):
+            out.append(control.unpack(self.control.recv_multipart()[1]))
+            if time.monotonic() >= end:
+                break
+        return out
+
+    def reload(self, models: list[str], timeout_s: float = 30.0) -> None:
+        """Send the control plane's ``load``, wait for the executor to register its new model set,
+        then for one heartbeat after it."""
+        self.control.send_multipart([b"ex0", control.pack("load", models=[asdict(self.cfg.model(m)) for m in models])])
+        end = time.monotonic() + timeout_s
+        registered = False
+        while time.monotonic() < end:
+            for msg in self.control_messages(0.05):
+                if msg.get("kind") == "register" and sorted(msg["models"]) == sorted(models):
+                    registered = True
+                elif registered and msg.get("kind") == "heartbeat":
+                    return
+        raise AssertionError(f"the executor did not reload to {models}")
+
+
+@pytest.fixture
+def harness(tmp_path):
+    made: list[Harness] = []
+
+    def make(**kw) -> Harness:
+        h = Harness(tmp_path, **kw)
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.close()
+
+
+def test_executor_keeps_serving_and_leaves_while_the_control_plane_is_unreachable(harness):
+    """Nothing listens at the control plane's address (it crashed, or is restarting): heartbeats
+    cannot be delivered, but robots must still be answered and SIGTERM must still end the
+    process. ZeroMQ queues 1000 undeliverable messages, then a blocking send waits forever."""
+    (dead,) = free_ports(1)
+    h = harness(control={"bind": f"tcp://127.0.0.1:{dead}", "heartbeat_s": 1e-6, "missed_heartbeats": 5,
+                         "metrics_port": 0})
+    ids = []
+    for i in range(1500):  # every turn of the I/O loop sends a heartbeat: well past 1000 of them
+        ids.append(i)
+        h.send(h.request(i))
+        h.collect(0.002)
+    h.wait_replies(ids, timeout_s=20)
+    missing = [i for i in ids if i not in h.replies]
+    assert not missing, f"{len(missing)} of {len(ids)} requests never answered (first: {missing[:3]})"
+
+    # Shutdown as main() runs it: withdraw (its waits are bounded), then close (deregisters).
+    h.stop.set()
+    h.thread.join(10)
+    assert not h.thread.is_alive(), "the I/O thread is wedged"
+    done = threading.Event()
+
+    def leave():
+        h.io.withdraw(ack_timeout_s=0.5, answer_timeout_s=0.5)
+        h.io.close()
+        done.set()
+
+    t0 = time.monotonic()
+    threading.Thread(target=leave, daemon=True).start()
+    assert done.wait(15), "withdraw/close blocked on the unreachable control plane"
+    assert time.monotonic() - t0 < 5
+    h.closed = True  # already left: the fixture must not close it twice
+    h.slot.stop()
+    h.router.close()
+    h.ctx.term()
+
+
+def _sample(h: Harness, name: str, **labels) -> float:
+    return h.metrics.registry.get_sample_value(name, labels) or 0.0
+
+
+def test_requests_refused_at_the_executor_count_in_requests_and_slo_metrics(harness):
+    """A request refused when it arrives (queue full, wrong shape) is answered with an error:
+    robion_requests_total counts it under its code, and the SLO series count it as missed,
+    as they do errors the engine answers (DEADLINE_EXCEEDED, UNAVAILABLE). Otherwise an
+    executor refusing most requests as OVERLOADED reports an attainment of 1.0."""
+    h = harness(engine={"kind": "monolithic", "max_batch": 1, "max_queue": 1})
+    ids = list(range(40))
+    for i in ids:  # one burst: the I/O thread submits faster than the engine drains a queue of one
+        h.send(h.request(i))
+    bad = h.request("bad")
+    bad.state = np.zeros(3, np.float32)
+    h.send(bad)
+    h.wait_replies([*ids, "bad"])
+    codes = {rid: getattr(m, "code", None) for rid, m in h.replies.items()}
+    overloaded = sum(c == ErrorCode.OVERLOADED for c in codes.values())
+    ok = sum(c is None for c in codes.values())
+    assert overloaded > 0 and ok > 0 and codes["bad"] == ErrorCode.SHAPE_MISMATCH
+    assert _sample(h, "robion_requests_total", model="toy-a", status="overloaded") == overloaded
+    assert _sample(h, "robion_requests_total", model="toy-a", status="shape_mismatch") == 1
+    assert _sample(h, "robion_requests_total", model="toy-a", status="ok") == ok
+    met = _sample(h, "robion_slo_met_total", model="toy-a")
+    missed = _sample(h, "robion_slo_missed_total", model="toy-a")
+    assert met + missed == len(h.replies)  # every answer is one SLO event
+    assert missed >= overloaded + 1
+    assert _sample(h, "robion_slo_attainment_ratio", model="toy-a") == pytest.approx(met / len(h.replies))
+
+
+def test_a_reload_drops_the_gauges_of_models_no_longer_served(harness):
+    """After a placement change moves toy-b away, robion_queue_depth and
+    robion_slo_attainment_ratio no longer show a toy-b series for this executor (they would
+    otherwise keep their last values forever), and the models served have their depth."""
+    h = harness(models=("toy-a", "toy-b"), control_plane=True,
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0})
+    ids = [f"b{i}" for i in range(4)]
+    for rid in ids:
+        h.send(h.request(rid, "toy-b"))
+    h.wait_replies(ids)
+    assert _sample(h, "robion_queue_depth", model="toy-b") == 0
+    h.reload(["toy-a"])
+    reg = h.metrics.registry
+    assert reg.get_sample_value("robion_queue_depth", {"model": "toy-b"}) is None
+    assert reg.get_sample_value("robion_slo_attainment_ratio", {"model": "toy-b"}) is None
+    assert reg.get_sample_value("robion_queue_depth", {"model": "toy-a"}) == 0
+    h.reload(["toy-a", "toy-b"])  # and back: its series return
+    assert reg.get_sample_value("robion_queue_depth", {"model": "toy-b"}) == 0
+
+
+def test_a_request_for_a_model_moved_away_is_answered_unavailable(harness):
+    """The router forwards only models of its routing table; one that reaches an executor
+    that does not serve it (now) was routed by a table older than the executor's model set
+    (a placement change in progress, a replica restarted with other models). The model is
+    configured, so the answer is UNAVAILABLE (retry: another host serves it), never
+    UNKNOWN_MODEL, which docs/protocol.md keeps for names the cluster does not define."""
+    h = harness(models=("toy-a", "toy-b"), control_plane=True,
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0})
+    h.reload(["toy-a"])
+    h.send(h.request("late", "toy-b"))
+    h.send(h.request("fine", "toy-a"))
+    h.wait_replies(["late", "fine"])
+    assert h.replies["late"].code == ErrorCode.UNAVAILABLE
+    assert getattr(h.replies["fine"], "actions", None) is not None

@@ -1,0 +1,61 @@
+"""The executor's robot-limit cache (services/executor/limits.py) when limits.json was edited by hand.
+
+docs/operations.md: a limit that is not a positive integer (0, negative, a fraction, inf,
+NaN, e.g. from a hand-edited limits.json) is ignored. An executor reading one from its
+cache must not crash at start-up nor report it: it measures the limit again.
+"""
+
+import json
+import logging
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from services.executor.hosting import ModelStore
+from services.executor.limits import device_name, limit_key, measure_limits
+from shared.config import load_config
+from tests.helpers import cluster_config
+
+CPU = torch.device("cpu")
+
+
+def _setup(tmp_path):
+    path, data = cluster_config(tmp_path, executors=[{"name": "ex0", "device": "cpu", "models": ["toy-a", "toy-b"]}])
+    data["control"]["limits"] = {"auto": True, "epochs": 1, "duration_s": 0.5, "max_robots": 2, "progress": False}
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_config(path)
+    hosted = ModelStore(CPU).load([cfg.model("toy-a")])
+    served = hosted.models["toy-a"]
+    key = limit_key(device_name(CPU), served.model.arch, "tiny", 2.0, cfg.engine.max_batch, 500.0, cfg.engine.kind,
+                    cfg.control.limits.target)
+    return cfg, hosted, key, Path(cfg.control.state_dir) / "limits.json"
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 0, -3, 2.5, None, "4", True])
+def test_an_unusable_cached_limit_is_measured_again(tmp_path, caplog, bad):
+    cfg, hosted, key, cache = _setup(tmp_path)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(json.dumps({key: {"limit": bad, "measured_s": 1.0}}))  # NaN / Infinity: Python's JSON allows them
+    with caplog.at_level(logging.WARNING, logger="robion.executor"):
+        limits = measure_limits(cfg, "ex0", hosted.models, CPU)
+    assert limits == {"toy-a": 2}  # measured (capped by max_robots: the toy model is fast)
+    assert json.loads(cache.read_text())[key]["limit"] == 2  # the bad entry is replaced
+    assert any("limits.json" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("content", ["[1, 2]", '{"k": 3}', "not json"])
+def test_a_cache_file_of_another_shape_is_measured_over(tmp_path, content):
+    cfg, hosted, key, cache = _setup(tmp_path)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(content)
+    assert measure_limits(cfg, "ex0", hosted.models, CPU) == {"toy-a": 2}
+    assert json.loads(cache.read_text())[key]["limit"] == 2
+
+
+def test_a_valid_cached_limit_is_reused(tmp_path):
+    cfg, hosted, key, cache = _setup(tmp_path)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(json.dumps({key: {"limit": 7}}))
+    assert measure_limits(cfg, "ex0", hosted.models, CPU) == {"toy-a": 7}
