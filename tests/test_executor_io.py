@@ -246,3 +246,27 @@ def test_a_request_for_a_model_moved_away_is_answered_unavailable(harness):
     h.wait_replies(["late", "fine"])
     assert h.replies["late"].code == ErrorCode.UNAVAILABLE
     assert getattr(h.replies["fine"], "actions", None) is not None
+
+
+def test_a_result_that_cannot_be_encoded_is_answered_internal_and_the_loop_goes_on(harness):
+    """An engine fault that hands the I/O thread a result with neither actions nor an error
+    costs that one request an INTERNAL answer (before, the robot got an ok reply without
+    actions), and a result whose reply cannot be encoded does too, without ending the I/O loop."""
+    from services.executor.scheduler import Request, Result
+
+    h = harness()
+    io = h.io.served["toy-a"].io
+    now = time.monotonic()
+    broken = Request(id="broken", robot="r0", model="toy-a",
+                     images=np.zeros((len(io.cameras), *io.image_shape), np.uint8),
+                     state=np.zeros(io.state_dim, np.float32), tokens=np.zeros(io.prompt_len, np.int64),
+                     arrival=now, deadline=now + 1.0, envelope=b"robot-0")
+    unencodable = Request(**{**broken.__dict__, "id": "unencodable"})
+    h.io.on_results([Result(broken), Result(unencodable, actions=object())])  # as a faulty batch would
+    h.wait_replies(["broken", "unencodable"], timeout_s=10)
+    assert h.replies["broken"].code == ErrorCode.INTERNAL
+    assert h.replies["unencodable"].code == ErrorCode.INTERNAL
+    h.send(h.request("after"))
+    h.wait_replies(["after"], timeout_s=30)
+    assert getattr(h.replies["after"], "actions", None) is not None
+    assert h.thread.is_alive()

@@ -53,6 +53,8 @@ def to_request(msg: InferRequest, served: ServedInput, envelope: bytes, arrival:
 
 def reply_frames(res: Result, now: float) -> list:
     r = res.request
+    if res.error is None and res.actions is None:  # an engine fault: never an ok reply without actions
+        res = Result(r, error=(ErrorCode.INTERNAL, "the executor produced no actions"))
     if res.error is not None:
         code, message = res.error
         return error_frames(r.id, code, message)
@@ -376,7 +378,13 @@ class ExecutorIO:
             batches: dict[tuple[str, float], int] = {}
             for res in batch:
                 r = res.request
-                self.backend.send_multipart([r.envelope, *reply_frames(res, now)], copy=False)
+                try:
+                    frames = reply_frames(res, now)
+                except Exception:  # an engine fault in one result must not end the I/O loop or lose the rest
+                    log.exception("could not encode the reply to request %r; answering INTERNAL", r.id)
+                    res = Result(r, error=(ErrorCode.INTERNAL, "the executor produced no valid reply"))
+                    frames = reply_frames(res, now)
+                self.backend.send_multipart([r.envelope, *frames], copy=False)
                 self.in_flight -= 1
                 sent = True
                 if res.error is not None:
