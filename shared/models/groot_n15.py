@@ -25,8 +25,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from shared.models.base import Handoff, ModelIO, VLAModel
-from shared.models.layers import (DecoderLayer, DiTBlock, RMSNorm, SigLIP, ViTBlock, attn_bias, camera_names,
-                                  ada_layer_norm, init_weights, rope_cos_sin, timestep_embedding)
+from shared.models.layers import (DecoderLayer, DiTBlock, RMSNorm, SigLIP, ViTBlock, Workspace, attn_bias,
+                                  camera_names, ada_layer_norm, init_weights, rope_cos_sin, timestep_embedding)
 from shared.models.registry import register
 
 
@@ -219,6 +219,7 @@ class GR00TN15(VLAModel):
         step_bias = torch.addmm(enc.w2.bias[e] + enc.w1.bias[e] @ w2a, timestep_embedding(t_disc, w).to(dtype), w2t)
         pos_bias = (enc.w3.bias[e] + hd.pos_embed.weight[:hz]).repeat(b, 1)
 
+        ws = Workspace(dev)  # counters of the split-K GEMMs' in-launch reductions
         x = noise.to(dtype)
         dt = 1.0 / c.steps
         for step in range(c.steps):
@@ -226,7 +227,7 @@ class GR00TN15(VLAModel):
             a = torch.addmm(pos_bias, a, enc.w3.weight[e]).view(b, hz, w)
             h = torch.cat([head_tokens, a], dim=1)
             for i, blk in enumerate(hd.dit.blocks):
-                h = blk(h, ada[i][1][step], ada[i][0][step], ctx[i], ctx_bias)
+                h = blk(h, ada[i][1][step], ada[i][0][step], ctx[i], ctx_bias, ws)
             h = ada_layer_norm(h[:, -hz:], shift_out[step], scale_out[step])
             v = hd.action_decoder(hd.dit.proj_out_2(h), e)
             x = torch.add(x, v, alpha=dt)

@@ -131,8 +131,15 @@ def ada_layer_norm(x: torch.Tensor, shift: torch.Tensor, scale_plus_one: torch.T
 # --------------------------------------------------------------------------- linear helpers
 
 
-def linear_residual(x: torch.Tensor, lin: nn.Linear, residual: torch.Tensor) -> torch.Tensor:
-    """residual + lin(x) with the add done by the GEMM (one kernel when lin has no bias)."""
+def linear_residual(x: torch.Tensor, lin: nn.Linear, residual: torch.Tensor, ws: Workspace | None = None) -> torch.Tensor:
+    """residual + lin(x) with the add done by the GEMM (one kernel when lin has no bias).
+
+    With a workspace (the action stages) calls of up to 64 rows take the split-K Triton GEMM, which
+    adds bias and residual in its epilogue: one launch instead of a residual copy, GEMM and bias add.
+    Over 64 rows every column tile re-reads a larger A tile: GR00T's DiT at batch 2 (98 rows) was
+    slower that way (6.31 against 6.25 ms per stage on an H100, bench/experiments/dit_splitk_ab.py)."""
+    if ws is not None and residual.numel() // lin.out_features <= 64:
+        return linear_residual_splitk(x, lin.weight, lin.bias, residual, ws)
     out = torch.addmm(residual.reshape(-1, lin.out_features), x.reshape(-1, lin.in_features), lin.weight.t())
     if lin.bias is not None:
         out += lin.bias
@@ -160,9 +167,9 @@ class MLP(nn.Module):
         self.fc1 = nn.Linear(dim, hidden)
         self.fc2 = nn.Linear(hidden, out_dim or dim)
 
-    def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None, ws: Workspace | None = None) -> torch.Tensor:
         h = F.gelu(self.fc1(x), approximate="tanh")
-        return self.fc2(h) if residual is None else linear_residual(h, self.fc2, residual)
+        return self.fc2(h) if residual is None else linear_residual(h, self.fc2, residual, ws)
 
 
 # --------------------------------------------------------------------------- RoPE / time
@@ -285,9 +292,9 @@ class CrossAttention(nn.Module):
         return kv[0], kv[1]
 
     def forward(self, x: torch.Tensor, kv: tuple[torch.Tensor, torch.Tensor], bias: torch.Tensor | None,
-                residual: torch.Tensor) -> torch.Tensor:
+                residual: torch.Tensor, ws: Workspace | None = None) -> torch.Tensor:
         q = self.q(x).unflatten(-1, (self.n_heads, self.head_dim))
-        return linear_residual(attention(q, kv[0], kv[1], bias), self.o, residual)
+        return linear_residual(attention(q, kv[0], kv[1], bias, ws), self.o, residual, ws)
 
 
 # --------------------------------------------------------------------------- vision
@@ -379,15 +386,18 @@ class DiTBlock(nn.Module):
         self.ff = MLP(dim, ff)
 
     def forward(self, x: torch.Tensor, shift: torch.Tensor, scale1: torch.Tensor,
-                ctx_kv: tuple[torch.Tensor, torch.Tensor] | None, ctx_bias: torch.Tensor | None) -> torch.Tensor:
+                ctx_kv: tuple[torch.Tensor, torch.Tensor] | None, ctx_bias: torch.Tensor | None,
+                ws: Workspace | None = None) -> torch.Tensor:
+        """With a workspace ``ws`` (the action stage) the residual projections run as one split-K
+        kernel each (``linear_residual``)."""
         h = ada_layer_norm(x, shift, scale1, 1e-5)
         if self.cross:
-            x = self.attn(h, ctx_kv, ctx_bias, x)
+            x = self.attn(h, ctx_kv, ctx_bias, x, ws)
         else:
             b, s, _ = h.shape
             q, k, v = self.attn.qkv(h).view(b, s, 3, self.heads, self.head_dim).unbind(2)
-            x = linear_residual(attention(q, k.transpose(1, 2), v.transpose(1, 2)), self.attn.o, x)
-        return self.ff(self.norm3(x), x)
+            x = linear_residual(attention(q, k.transpose(1, 2), v.transpose(1, 2), None, ws), self.attn.o, x, ws)
+        return self.ff(self.norm3(x), x, ws)
 
 
 # --------------------------------------------------------------------------- decoder
