@@ -30,8 +30,10 @@ CPU = torch.device("cpu")
 class Harness:
     """An ExecutorIO serving in a thread, and a stand-in router holding the other end of its backend."""
 
-    def __init__(self, tmp_path, models=("toy-a",), control_plane: bool = False, **overrides):
+    def __init__(self, tmp_path, models=("toy-a",), control_plane: bool = False, model_configs=None, **overrides):
         # ex1 (never started) hosts every model, so a model ex0 does not serve is still configured.
+        if model_configs is not None:
+            overrides["models"] = model_configs
         path, data = cluster_config(tmp_path, executors=[{"name": "ex0", "device": "cpu", "models": list(models)},
                                                          {"name": "ex1", "device": "cpu", "models": ["toy-a", "toy-b"]}],
                                     **overrides)
@@ -270,3 +272,27 @@ def test_a_result_that_cannot_be_encoded_is_answered_internal_and_the_loop_goes_
     h.wait_replies(["after"], timeout_s=30)
     assert getattr(h.replies["after"], "actions", None) is not None
     assert h.thread.is_alive()
+
+
+def test_an_executor_that_cannot_load_any_models_after_a_failed_reload_leaves(harness, tmp_path):
+    """A load whose models fail, while the previous models cannot be loaded back either (here
+    their weights file is gone), leaves no engine: the executor ends its I/O loop (main then
+    withdraws and exits 1 for a supervisor to restart it) instead of staying registered and
+    answering every request UNAVAILABLE forever."""
+    from shared.models import build_model
+    from shared.models.weights import save_weights
+
+    weights = tmp_path / "toy-a.safetensors"
+    save_weights(build_model("toy", "tiny", seed=0), str(weights))
+    models = [{"name": "toy-a", "arch": "toy", "size": "tiny", "seed": 0, "slo_ms": 500, "weights": str(weights)},
+              {"name": "toy-b", "arch": "toy", "size": "tiny", "seed": 1, "slo_ms": 500}]
+    h = harness(model_configs=models, control_plane=True,
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0})
+    h.send(h.request("before"))
+    h.wait_replies(["before"])
+    assert getattr(h.replies["before"], "actions", None) is not None
+    weights.unlink()  # e.g. the weights volume went away
+    broken = {**asdict(h.cfg.model("toy-b")), "weights": str(tmp_path / "missing.safetensors")}
+    h.control.send_multipart([b"ex0", control.pack("load", models=[broken])])
+    h.thread.join(30)
+    assert not h.thread.is_alive() and h.io.fatal.is_set()

@@ -89,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         slot.stop()
         transport.drain()
         transport.close()
+    if transport.fatal.is_set():
+        log.error("stopped: no models could be loaded after a failed reload (%s)", transport.stats)
+        return 1  # a supervisor (docker-compose's restart policy) starts it again
     log.info("stopped: %s", transport.stats)
     return 0
 

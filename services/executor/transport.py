@@ -92,6 +92,7 @@ class ExecutorIO:
         self.in_flight = 0  # requests handed to the engine and not yet answered (I/O thread only)
         self._reload: threading.Thread | None = None
         self._reregister = threading.Event()
+        self.fatal = threading.Event()  # serving cannot go on (a reload and its fallback failed)
         self._poller: zmq.Poller | None = None
         self._last_beat = 0.0
         self._leaving = False  # withdraw() has begun: no re-registration, no reloads
@@ -165,7 +166,7 @@ class ExecutorIO:
             self._poller.register(s, zmq.POLLIN)
         self.register()
         self._last_beat = time.monotonic()
-        while not stop.is_set():
+        while not stop.is_set() and not self.fatal.is_set():
             self._serve_once()
 
     def _serve_once(self, timeout_ms: int = 50) -> None:
@@ -308,9 +309,18 @@ class ExecutorIO:
             took = self.slot.start(hosted)
         except Exception:
             log.exception("loading %s failed; keeping the previous models", names)
-            hosted = self.store.load(previous)
-            self.served = hosted.inputs
-            took = self.slot.start(hosted)
+            try:
+                hosted = self.store.load(previous)
+                self.served = hosted.inputs
+                took = self.slot.start(hosted)
+            except Exception:
+                # No engine and no way back (weights gone, device memory taken): an executor
+                # that stayed up would answer every request UNAVAILABLE and never register
+                # again. Leave instead, so routing drops it and a supervisor restarts it.
+                log.critical("loading the previous models %s failed too; leaving", [mc.name for mc in previous],
+                             exc_info=True)
+                self.fatal.set()  # the I/O loop ends within one poll; main then withdraws and exits 1
+                return
         self.metrics.slo_s = {n: s.slo_s for n, s in hosted.inputs.items()}
         log.info("now serving %s (engine ready in %.1f s)", sorted(hosted.inputs), took)
         self._reregister.set()
