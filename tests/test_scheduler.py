@@ -95,3 +95,26 @@ def test_monolithic_engine_serves_batches_equal_to_eager():
             ref = model.action_stage(model.vlm_stage(torch.from_numpy(r.images)[None], torch.from_numpy(r.state)[None],
                                                      torch.from_numpy(r.tokens)[None]), torch.from_numpy(r.noise)[None])[0]
         np.testing.assert_allclose(res.actions, ref.numpy(), rtol=1e-4, atol=1e-5)
+
+
+def test_a_refused_request_does_not_use_up_noise():
+    """The engine draws each request's initial noise from a per-model seeded sequence, in the
+    order requests are accepted: a request refused as OVERLOADED must not take a draw, or every
+    later request's actions would differ from a run without that refusal."""
+    model = build_model("toy", seed=1)
+
+    def accepted_noise(refuse_one: bool) -> np.ndarray:
+        eng = MonolithicEngine({"toy": ServedModel("toy", model, 1.0)}, EngineConfig(max_batch=2, max_queue=1),
+                               torch.device("cpu"), lambda rs: None)
+        now = time.monotonic()
+        eng.submit(req("toy", "a", now, now + 60))
+        if refuse_one:
+            with pytest.raises(ProtocolError) as exc:
+                eng.submit(req("toy", "refused", now, now + 60))
+            assert exc.value.code == ErrorCode.OVERLOADED
+        eng.queues.drain()
+        second = req("toy", "b", now, now + 60)
+        eng.submit(second)
+        return second.noise
+
+    np.testing.assert_array_equal(accepted_noise(True), accepted_noise(False))

@@ -19,7 +19,7 @@ from services.executor.scheduler import ModelQueues, Request, Result
 from services.executor.stages import EagerStages
 from shared.config import EngineConfig
 from shared.models.base import VLAModel
-from shared.protocol import ErrorCode
+from shared.protocol import ErrorCode, ProtocolError
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,14 @@ class Engine:
         if req.noise is None and gen is not None:
             io = self.models[req.model].model.io
             with self._noise_lock:
+                state = gen.get_state()
                 req.noise = torch.randn(io.horizon, io.action_dim, generator=gen).numpy()
+                try:
+                    self.queues.put(req)
+                except ProtocolError:
+                    gen.set_state(state)  # a refused request (OVERLOADED) leaves the noise sequence as it was
+                    raise
+            return
         self.queues.put(req)
 
     def prepare(self) -> None:
