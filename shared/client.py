@@ -19,8 +19,14 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 import zmq
 
-from shared.protocol import (ErrorCode, ErrorReply, Hello, InferReply, InferRequest, Metadata, ModelInfo, Ping, Pong,
-                             ProtocolError, Timings, decode, encode, message_bytes)
+from shared.protocol import (MAX_HEADER_BYTES, MAX_ID_CHARS, ErrorCode, ErrorReply, Hello, InferReply, InferRequest,
+                             Metadata, ModelInfo, Ping, Pong, ProtocolError, RequestId, Timings, decode, encode,
+                             message_bytes, valid_id)
+
+# The generated ids are "<robot_id>-<tag>-<counter>"; this leaves room for the tag and a 20-digit counter,
+# so an id the client makes is always one the router accepts (at most MAX_ID_CHARS characters).
+MAX_ROBOT_ID_CHARS = MAX_ID_CHARS - 32
+MAX_IDENTITY_BYTES = 255  # ZeroMQ's limit on a socket identity
 
 
 class RobionError(Exception):
@@ -69,12 +75,21 @@ class RobotClient:
     def __init__(self, address: str, robot_id: str | None = None, timeout_s: float = 10.0,
                  context: zmq.Context | None = None):
         self.robot_id = robot_id or f"robot-{uuid.uuid4().hex[:8]}"
+        # Checked before the socket exists: a refused identity used to raise from setsockopt and leave an
+        # open socket behind, which makes the context's term() wait forever.
+        if len(self.robot_id) > MAX_ROBOT_ID_CHARS or len(self.robot_id.encode()) > MAX_IDENTITY_BYTES:
+            raise ValueError(f"robot_id: at most {MAX_ROBOT_ID_CHARS} characters and {MAX_IDENTITY_BYTES} bytes "
+                             f"in UTF-8, got {len(self.robot_id)} characters")
         self.timeout_s = timeout_s
         self._ctx = context or zmq.Context.instance()
         self.socket = self._ctx.socket(zmq.DEALER)
-        self.socket.setsockopt(zmq.LINGER, 0)
-        self.socket.setsockopt(zmq.IDENTITY, self.robot_id.encode())
-        self.socket.connect(address)
+        try:
+            self.socket.setsockopt(zmq.LINGER, 0)
+            self.socket.setsockopt(zmq.IDENTITY, self.robot_id.encode())
+            self.socket.connect(address)
+        except zmq.ZMQError:
+            self.socket.close(linger=0)
+            raise
         self._ids = itertools.count()
         self._pending: dict[str, tuple[str, float, int]] = {}  # id -> (model, sent_at, bytes)
         self._done: dict[str, Completion] = {}
@@ -91,8 +106,7 @@ class RobotClient:
         rid = request_id or f"{self.robot_id}-{next(self._ids)}"
         frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
                                      state=np.asarray(state, dtype=np.float32), instruction=instruction))
-        self._pending[rid] = (model, time.monotonic(), message_bytes(frames))
-        self.socket.send_multipart(frames, copy=False)
+        self._send(rid, model, frames)
         return rid
 
     def poll(self, timeout_s: float = 0.0) -> list[Completion]:
@@ -144,8 +158,7 @@ class RobotClient:
     def _round_trip(self, message: type, tag: str, timeout_s: float | None) -> Completion:
         """Send a message that carries only an id and wait for its answer; its error is raised."""
         rid = f"{self.robot_id}-{tag}-{next(self._ids)}"
-        self._pending[rid] = ("", time.monotonic(), 0)
-        self.socket.send_multipart(encode(message(id=rid)))
+        self._send(rid, "", encode(message(id=rid)))
         done = self._wait_for(rid, timeout_s)
         if done.error is not None:
             raise done.error
@@ -161,6 +174,28 @@ class RobotClient:
         self.close()
 
     # -- internals
+
+    def _send(self, rid: RequestId, model: str, frames: list) -> None:
+        """Send a request and track it; raise RobionError, with nothing left pending, when it cannot go out."""
+        # The router answers a request whose id or header it cannot read with id "" (docs/protocol.md): such
+        # an answer matches nothing here, so the request would only ever time out. Refuse it before sending.
+        if not valid_id(rid):
+            raise RobionError(ErrorCode.BAD_REQUEST, f"id: expected a str of at most {MAX_ID_CHARS} characters "
+                                                     f"or an int, got {type(rid).__name__}", "")
+        if len(frames[0]) > MAX_HEADER_BYTES:
+            raise RobionError(ErrorCode.TOO_LARGE, f"header is {len(frames[0])} bytes; the limit is "
+                                                   f"{MAX_HEADER_BYTES} (is the instruction too long?)", str(rid))
+        if rid in self._pending:
+            raise RobionError(ErrorCode.BAD_REQUEST, f"id: request {rid!r} is already in flight", str(rid))
+        sent_at = time.monotonic()
+        try:
+            # NOBLOCK: while the router is unreachable the socket queues up to its high-water mark; a blocking
+            # send would then wait until the router is back, past any timeout the caller gave.
+            self.socket.send_multipart(frames, flags=zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            raise RobionError(ErrorCode.UNAVAILABLE, "the router is not taking requests (send queue full: "
+                                                     "unreachable or not reading)", str(rid)) from None
+        self._pending[rid] = (model, sent_at, message_bytes(frames))
 
     def _camera_names(self, model: str, n: int) -> list[str]:
         info = self.metadata().get(model)
@@ -194,7 +229,13 @@ class RobotClient:
         except ProtocolError:
             return None  # not ours to fail on; a garbled reply is dropped and its request times out
         rid = getattr(msg, "id", "")
-        model, sent_at, req_bytes = self._pending.pop(rid, ("", now, 0))
+        if isinstance(msg, Metadata):
+            self._metadata = msg.models  # newer news about the served models, whoever asked
+        if rid not in self._pending:
+            # Not a request in flight: its caller already got RequestTimeout (one outcome per request), or it
+            # is an answer no request of ours can match (id ""). Reporting it would invent a completion.
+            return None
+        model, sent_at, req_bytes = self._pending.pop(rid)
         done = Completion(request_id=rid, model=model, sent_at=sent_at, received_at=now, request_bytes=req_bytes,
                           reply_bytes=size)
         if isinstance(msg, InferReply):
@@ -202,9 +243,7 @@ class RobotClient:
             done.timings = msg.timings
         elif isinstance(msg, ErrorReply):
             done.error = RobionError(msg.code, msg.message, rid)
-        elif isinstance(msg, Metadata):
-            self._metadata = msg.models
-        elif not isinstance(msg, Pong):
+        elif not isinstance(msg, (Metadata, Pong)):
             return None
         return done
 

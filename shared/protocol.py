@@ -331,6 +331,12 @@ def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Mes
         msg = InferRequest(id=rid, robot=robot, model=model, images=images, state=state, instruction=instruction)
     elif kind == "reply":
         timings = header.get("timings", {})
+        # Checked like any other field: a bad value used to escape as AttributeError / TypeError / ValueError,
+        # which callers that catch ProtocolError (the SDK drops a garbled reply) did not expect.
+        if not isinstance(timings, dict) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool)
+                for k, v in timings.items() if k in Timings.__dataclass_fields__):
+            raise ProtocolError(ErrorCode.BAD_REQUEST, "timings: expected a map of numbers")
         msg = InferReply(id=rid, model=str(header.get("model", "")),
                          actions=decode_array(_field(header, "actions", dict), frames, "actions", used),
                          timings=Timings(**{k: float(v) for k, v in timings.items() if k in Timings.__dataclass_fields__}))
@@ -349,7 +355,10 @@ def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Mes
             infos = {name: ModelInfo.from_wire(info) for name, info in models.items()}
         except (KeyError, TypeError, ValueError) as exc:
             raise ProtocolError(ErrorCode.BAD_REQUEST, f"models: malformed model description ({exc})") from None
-        msg = Metadata(id=rid, protocol=int(header.get("protocol", PROTOCOL_VERSION)), models=infos)
+        protocol = header.get("protocol", PROTOCOL_VERSION)
+        if type(protocol) is not int:
+            raise ProtocolError(ErrorCode.BAD_REQUEST, f"protocol: expected int, got {type(protocol).__name__}")
+        msg = Metadata(id=rid, protocol=protocol, models=infos)
     elif kind == "ping":
         msg = Ping(id=rid)
     elif kind == "pong":

@@ -26,6 +26,7 @@ log = logging.getLogger("robion.router")
 
 MAX_IN_FLIGHT = 65536
 TABLE_POLL_S = 0.1
+SHUTDOWN_LINGER_MS = 1000  # at shutdown, how long the last answers may take to leave
 WARN_EVERY_S = 5.0  # refusals a peer can trigger at will are logged at most this often, with a count
 
 # A request in flight: (robot, id type, id). The id keeps its wire type, so 7 and "7" from one
@@ -137,8 +138,19 @@ class Router:
         self.close()
 
     def close(self) -> None:
-        for s in (self.frontend, self.backend, self.ctl):
-            s.close(linger=0)
+        # Every request gets exactly one answer: those still in flight would otherwise be lost with the
+        # router and their robots would each wait out their own timeout before retrying.
+        for (robot, _, rid), f in list(self.in_flight.items()):
+            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, "the router is shutting down", f.model)
+        self.in_flight.clear()
+        # A bounded linger, not 0, so those answers go out before the context terminates (main.py waits
+        # for it). It also lets each connection finish the message it is half-way through: with linger 0
+        # the pipe is cut mid-message, and a peer dropping its connection at that moment (peers are often
+        # stopped together with the router) can trip libzmq 4.3's assertion in session_base clean_pipes
+        # (zeromq/libzmq#3442), aborting the process.
+        self.ctl.close(linger=0)
+        for s in (self.backend, self.frontend):
+            s.close(linger=SHUTDOWN_LINGER_MS)
 
     # ------------------------------------------------------------------ robots
 

@@ -1,0 +1,85 @@
+"""The router process at shutdown: every request in flight still gets its one answer.
+
+A real router process (services.router.main) on loopback, with a stand-in control plane serving a
+hand-made routing table and a stand-in executor that takes requests and never answers.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import zmq
+
+from shared import control
+from shared.config import load_config
+from shared.control import RoutingTable
+from shared.protocol import ErrorCode, ErrorReply, decode, pack_header
+from tests.helpers import cluster_config
+from tests.test_router_robustness import INFO, infer_frames
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_requests_in_flight_are_answered_when_the_router_stops(tmp_path):
+    path, _ = cluster_config(tmp_path)
+    cfg = load_config(path)
+    table = RoutingTable(version=1, models={"toy-a": INFO}, routes={"toy-a": ["ex0"]}, executors=["ex0"])
+    ctx = zmq.Context()
+    stop = threading.Event()
+    ctl = ctx.socket(zmq.ROUTER)
+    ctl.setsockopt(zmq.LINGER, 0)
+    ctl.bind(cfg.control.bind)
+
+    def control_plane() -> None:
+        while not stop.is_set():
+            if ctl.poll(50):
+                peer, _ = ctl.recv_multipart()
+                ctl.send_multipart([peer, control.pack("table", table=table.to_wire())])
+
+    server = threading.Thread(target=control_plane, daemon=True)
+    server.start()
+    proc = subprocess.Popen([sys.executable, "-m", "services.router.main", "-c", str(path), "--log-level", "WARNING"],
+                            cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    executor = ctx.socket(zmq.DEALER)
+    robot = ctx.socket(zmq.DEALER)
+    try:
+        executor.setsockopt(zmq.IDENTITY, b"ex0")
+        executor.setsockopt(zmq.LINGER, 0)
+        executor.connect(cfg.router.backend)
+        robot.setsockopt(zmq.LINGER, 0)
+        robot.connect(cfg.router.bind)
+        # Until the router is up and routes by the table, a request is refused (or not read at all):
+        # send fresh ones until one reaches the executor.
+        held = None
+        end = time.monotonic() + 20
+        i = 0
+        while held is None and time.monotonic() < end:
+            executor.send_multipart([b"", pack_header({"kind": "executor_hello", "executor": "ex0"})])
+            robot.send_multipart(infer_frames(f"warm-{i}"))
+            i += 1
+            if executor.poll(300):
+                held = decode(executor.recv_multipart()[1:]).id  # never answered
+            while robot.poll(0):
+                robot.recv_multipart()  # refusals from before the table arrived
+        assert held is not None, "no request reached the executor"
+
+        proc.send_signal(signal.SIGTERM)
+        assert robot.poll(5000), "the request in flight got no answer when the router stopped"
+        rep = decode(robot.recv_multipart())
+        assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.UNAVAILABLE and rep.id == held, rep
+        assert "shutting down" in rep.message
+        assert proc.wait(10) == 0, proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        stop.set()
+        server.join(5)
+        for s in (executor, robot, ctl):
+            s.close(linger=0)
+        ctx.term()
