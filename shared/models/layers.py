@@ -134,12 +134,20 @@ def ada_layer_norm(x: torch.Tensor, shift: torch.Tensor, scale_plus_one: torch.T
 def linear_residual(x: torch.Tensor, lin: nn.Linear, residual: torch.Tensor, ws: Workspace | None = None) -> torch.Tensor:
     """residual + lin(x) with the add done by the GEMM (one kernel when lin has no bias).
 
-    With a workspace (the action stages) calls of up to 64 rows take the split-K Triton GEMM, which
-    adds bias and residual in its epilogue: one launch instead of a residual copy, GEMM and bias add.
-    Over 64 rows every column tile re-reads a larger A tile: GR00T's DiT at batch 2 (98 rows) was
-    slower that way (6.31 against 6.25 ms per stage on an H100, bench/experiments/dit_splitk_ab.py)."""
-    if ws is not None and residual.numel() // lin.out_features <= 64:
+    With a workspace (the action stages, which own their activations) calls of up to 64 rows take
+    the split-K Triton GEMM, which adds bias and residual in its epilogue: one launch instead of a
+    residual copy, GEMM and bias add. Over 64 rows every column tile re-reads a larger A tile: GR00T's
+    DiT at batch 2 (98 rows) was slower that way (6.31 against 6.25 ms per stage on an H100,
+    bench/experiments/dit_splitk_ab.py); there the GEMM accumulates into ``residual`` in place, which
+    saves the copy, so the caller must not need ``residual`` afterwards."""
+    rows = residual.numel() // lin.out_features
+    if ws is not None and rows <= 64:
         return linear_residual_splitk(x, lin.weight, lin.bias, residual, ws)
+    if ws is not None and residual.is_contiguous():
+        out = residual.view(rows, lin.out_features).addmm_(x.reshape(rows, lin.in_features), lin.weight.t())
+        if lin.bias is not None:
+            out += lin.bias
+        return residual
     out = torch.addmm(residual.reshape(-1, lin.out_features), x.reshape(-1, lin.in_features), lin.weight.t())
     if lin.bias is not None:
         out += lin.bias
