@@ -853,6 +853,19 @@ def norm_qkv(x: torch.Tensor, norm_w: torch.Tensor, eps: float, weight: torch.Te
     return q
 
 
+def addmm_residual(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, residual: torch.Tensor,
+                   inplace: bool = False) -> torch.Tensor:
+    """``residual + linear(x, weight, bias)`` on cuBLAS: the GEMM adds the residual, then the bias is
+    added. ``addmm`` writes into a copy of the residual (a DtoD copy); with ``inplace`` the GEMM
+    accumulates into ``residual`` itself (contiguous, and not needed by the caller afterwards)."""
+    n, k = weight.shape
+    r2, x2 = residual.reshape(-1, n), x.reshape(-1, k)
+    out = r2.addmm_(x2, weight.t()) if inplace else torch.addmm(r2, x2, weight.t())
+    if bias is not None:
+        out += bias
+    return out.view(residual.shape)
+
+
 def linear_residual_splitk(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, residual: torch.Tensor,
                            ws: Workspace | None, stats: bool = False) -> torch.Tensor:
     """``residual + linear(x, weight, bias)`` (bf16 out, fp32 accumulation, one launch).
@@ -869,12 +882,10 @@ def linear_residual_splitk(x: torch.Tensor, weight: torch.Tensor, bias: torch.Te
     big_enough = (rows <= 64 or (stats and GEMM_CFG["stats_over_64_rows"])
                   or weight.numel() * weight.element_size() >= GEMM_CFG["min_bytes_over_64_rows"])
     if ws is None or not fast_gemm_ok(x, rows) or rows > GEMM_CFG["max_rows"] or not big_enough:
-        out = torch.addmm(residual.reshape(-1, n), x.reshape(-1, k), weight.t())
-        if bias is not None:
-            out += bias
+        out = addmm_residual(x, weight, bias, residual)
         if ws is not None:
             ws.keep_stats(out, None)
-        return out.view(residual.shape)
+        return out
     x2 = x.reshape(rows, k)
     r2 = residual.reshape(rows, n)
     out = torch.empty(rows, n, device=x.device, dtype=residual.dtype)

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from shared.models.fused import (RowStats, Workspace, attention_fits, gated_act,  # noqa: F401
+from shared.models.fused import (RowStats, Workspace, addmm_residual, attention_fits, gated_act,  # noqa: F401
                                  gemm_attention, gemm_attention_fits, linear_residual_splitk, small_attention,
                                  split_qkv)
 
@@ -140,18 +140,13 @@ def linear_residual(x: torch.Tensor, lin: nn.Linear, residual: torch.Tensor, ws:
     DiT at batch 2 (98 rows) was slower that way (6.31 against 6.25 ms per stage on an H100,
     bench/experiments/dit_splitk_ab.py); there the GEMM accumulates into ``residual`` in place, which
     saves the copy, so the caller must not need ``residual`` afterwards."""
-    rows = residual.numel() // lin.out_features
-    if ws is not None and rows <= 64:
+    if ws is None:
+        return addmm_residual(x, lin.weight, lin.bias, residual)
+    if residual.numel() // lin.out_features <= 64:
         return linear_residual_splitk(x, lin.weight, lin.bias, residual, ws)
-    if ws is not None and residual.is_contiguous():
-        out = residual.view(rows, lin.out_features).addmm_(x.reshape(rows, lin.in_features), lin.weight.t())
-        if lin.bias is not None:
-            out += lin.bias
-        return residual
-    out = torch.addmm(residual.reshape(-1, lin.out_features), x.reshape(-1, lin.in_features), lin.weight.t())
-    if lin.bias is not None:
-        out += lin.bias
-    return out.view(residual.shape)
+    out = addmm_residual(x, lin.weight, lin.bias, residual, inplace=residual.is_contiguous())
+    ws.keep_stats(out, None)  # ``residual`` may have been the output kept with row statistics: not any more
+    return out
 
 
 class GatedMLP(nn.Module):
