@@ -268,6 +268,7 @@ def test_a_result_that_cannot_be_encoded_is_answered_internal_and_the_loop_goes_
     h.wait_replies(["broken", "unencodable"], timeout_s=10)
     assert h.replies["broken"].code == ErrorCode.INTERNAL
     assert h.replies["unencodable"].code == ErrorCode.INTERNAL
+    assert _sample(h, "robion_requests_total", model="toy-a", status="internal") == 2  # counted as what was sent
     h.send(h.request("after"))
     h.wait_replies(["after"], timeout_s=30)
     assert getattr(h.replies["after"], "actions", None) is not None

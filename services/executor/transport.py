@@ -52,15 +52,22 @@ def to_request(msg: InferRequest, served: ServedInput, envelope: bytes, arrival:
 
 
 def reply_frames(res: Result, now: float) -> list:
+    """The reply to ``res``. A result the engine got wrong (neither actions nor an error, or actions
+    that cannot be encoded) is answered INTERNAL, and ``res.error`` says so for the metrics: never
+    an ok reply without actions, and never an exception that would end the I/O loop."""
     r = res.request
-    if res.error is None and res.actions is None:  # an engine fault: never an ok reply without actions
-        res = Result(r, error=(ErrorCode.INTERNAL, "the executor produced no actions"))
-    if res.error is not None:
-        code, message = res.error
-        return error_frames(r.id, code, message)
-    timings = Timings(queue_ms=max(0.0, res.admitted - r.arrival) * 1e3, vlm_ms=res.vlm_s * 1e3,
-                      action_ms=res.action_s * 1e3, server_ms=(now - r.arrival) * 1e3)
-    return encode(InferReply(id=r.id, model=r.model, actions=res.actions, timings=timings))
+    if res.error is None:
+        try:
+            if res.actions is None:
+                raise ValueError("a result with neither actions nor an error")
+            timings = Timings(queue_ms=max(0.0, res.admitted - r.arrival) * 1e3, vlm_ms=res.vlm_s * 1e3,
+                              action_ms=res.action_s * 1e3, server_ms=(now - r.arrival) * 1e3)
+            return encode(InferReply(id=r.id, model=r.model, actions=res.actions, timings=timings))
+        except Exception:
+            log.exception("could not make the reply to request %r; answering INTERNAL", r.id)
+            res.error = (ErrorCode.INTERNAL, "the executor produced no valid reply")
+    code, message = res.error
+    return error_frames(r.id, code, message)
 
 
 class ExecutorIO:
@@ -388,13 +395,7 @@ class ExecutorIO:
             batches: dict[tuple[str, float], int] = {}
             for res in batch:
                 r = res.request
-                try:
-                    frames = reply_frames(res, now)
-                except Exception:  # an engine fault in one result must not end the I/O loop or lose the rest
-                    log.exception("could not encode the reply to request %r; answering INTERNAL", r.id)
-                    res = Result(r, error=(ErrorCode.INTERNAL, "the executor produced no valid reply"))
-                    frames = reply_frames(res, now)
-                self.backend.send_multipart([r.envelope, *frames], copy=False)
+                self.backend.send_multipart([r.envelope, *reply_frames(res, now)], copy=False)
                 self.in_flight -= 1
                 sent = True
                 if res.error is not None:
