@@ -26,26 +26,12 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from shared.models import build_model, fused, layers  # noqa: E402
 
-from timing import alternating_ms, env_settings, pct, result_header, save_result  # noqa: E402  (this folder)
+from timing import alternating_ms, capture_checked, env_settings, pct, result_header, save_result  # noqa: E402,E501
 
 
 def set_gemm(on: bool, max_heads: int = 64) -> None:
     fused.ATTN_CFG["gemm"] = on
     fused.ATTN_CFG["gemm_max_heads"] = max_heads
-
-
-def capture(body, pool):
-    """Two eager calls, then a graph; returns (graph, eager output, graph output) as float dicts."""
-    for _ in range(2):
-        eager = body()
-    torch.cuda.synchronize()
-    eager = {k: v.float().clone() for k, v in eager.items() if v.is_floating_point()}
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph, pool=pool):
-        out = body()
-    graph.replay()
-    torch.cuda.synchronize()
-    return graph, eager, {k: v.float().clone() for k, v in out.items() if v.is_floating_point()}
 
 
 def rel(a: dict, b: dict) -> float:
@@ -100,7 +86,7 @@ def run_model(arch: str, batches: list[int], iters: int) -> dict:
         with torch.inference_mode():
             for name, on in (("main", False), ("gemm", True)):
                 set_gemm(on)
-                graphs[name], *outs[name] = capture(lambda: model.vlm_stage(images, state, tokens), pool)
+                graphs[name], *outs[name] = capture_checked(lambda: model.vlm_stage(images, state, tokens), pool)
             set_gemm(False)
         times = alternating_ms(graphs, iters)
         row = {name: {"p50_ms": statistics.median(times[name]), "p99_ms": pct(times[name], 0.99),

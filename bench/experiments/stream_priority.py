@@ -46,7 +46,7 @@ def run_model(arch: str, levels: list[int], device: torch.device, rounds: int, r
     st.allocate()
     st.capture_action()  # as the engine captures them (no SM table: whole-GPU action plan)
     st.capture_vlm(B, set(levels))
-    lo, hi = torch.cuda.Stream.priority_range() if hasattr(torch.cuda.Stream, "priority_range") else (0, -5)
+    _, hi = torch.cuda.Stream.priority_range()  # (lowest, highest); lower numbers run first
     streams = {"base": (0, 0), "act_hi": (0, hi), "vlm_hi": (hi, 0)}
     runners = {}
     for name, (vp, ap) in streams.items():

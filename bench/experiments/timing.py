@@ -30,9 +30,17 @@ def replay_ms(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream, reps: int,
     return times
 
 
-def capture_checked(body, pool, warmup: int = 2) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
+def float_copy(out):
+    """A float copy of a stage's output: a tensor, or the floating tensors of a dict (a VLM handoff)."""
+    if isinstance(out, dict):
+        return {k: v.float().clone() for k, v in out.items() if v.is_floating_point()}
+    return out.float().clone()
+
+
+def capture_checked(body, pool, warmup: int = 2) -> tuple:
     """``warmup`` eager calls of ``body``, then its CUDA graph captured into ``pool`` and replayed
-    once: (graph, the last eager output, the graph's output), the outputs as float copies."""
+    once: (graph, the last eager output, the graph's output), the outputs as float copies
+    (``float_copy``: tensors, or dicts of them)."""
     for _ in range(warmup):
         eager = body()
     torch.cuda.synchronize()
@@ -41,7 +49,7 @@ def capture_checked(body, pool, warmup: int = 2) -> tuple[torch.cuda.CUDAGraph, 
         out = body()
     graph.replay()
     torch.cuda.synchronize()
-    return graph, eager.float().clone(), out.float().clone()
+    return graph, float_copy(eager), float_copy(out)
 
 
 def replay_pair_ms(first: torch.cuda.CUDAGraph, second: torch.cuda.CUDAGraph, reps: int,
