@@ -856,10 +856,12 @@ def norm_qkv(x: torch.Tensor, norm_w: torch.Tensor, eps: float, weight: torch.Te
 def addmm_residual(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, residual: torch.Tensor,
                    inplace: bool = False) -> torch.Tensor:
     """``residual + linear(x, weight, bias)`` on cuBLAS: the GEMM adds the residual, then the bias is
-    added. ``addmm`` writes into a copy of the residual (a DtoD copy); with ``inplace`` the GEMM
-    accumulates into ``residual`` itself (contiguous, and not needed by the caller afterwards)."""
+    added. ``addmm`` writes into a copy of the residual (a DtoD copy); with ``inplace`` (the caller
+    does not need ``residual`` afterwards) the GEMM accumulates into ``residual`` itself, when it is
+    contiguous and autograd does not need its old value (a stage run with gradients on, in a test)."""
     n, k = weight.shape
     r2, x2 = residual.reshape(-1, n), x.reshape(-1, k)
+    inplace = inplace and residual.is_contiguous() and not (residual.requires_grad and torch.is_grad_enabled())
     out = r2.addmm_(x2, weight.t()) if inplace else torch.addmm(r2, x2, weight.t())
     if bias is not None:
         out += bias
@@ -869,6 +871,9 @@ def addmm_residual(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | N
 def linear_residual_splitk(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, residual: torch.Tensor,
                            ws: Workspace | None, stats: bool = False) -> torch.Tensor:
     """``residual + linear(x, weight, bias)`` (bf16 out, fp32 accumulation, one launch).
+
+    The cuBLAS fallback accumulates into ``residual`` in place (``addmm_residual``): callers pass a
+    residual they do not need afterwards.
 
     ``stats``: the last program of each column tile also writes its rows' sums of squares, kept
     in ``ws`` for the output (``Workspace.stats_of``), so the RMSNorm that reads it next needs no
@@ -882,7 +887,7 @@ def linear_residual_splitk(x: torch.Tensor, weight: torch.Tensor, bias: torch.Te
     big_enough = (rows <= 64 or (stats and GEMM_CFG["stats_over_64_rows"])
                   or weight.numel() * weight.element_size() >= GEMM_CFG["min_bytes_over_64_rows"])
     if ws is None or not fast_gemm_ok(x, rows) or rows > GEMM_CFG["max_rows"] or not big_enough:
-        out = addmm_residual(x, weight, bias, residual)
+        out = addmm_residual(x, weight, bias, residual, inplace=True)  # the callers drop their residual
         if ws is not None:
             ws.keep_stats(out, None)
         return out

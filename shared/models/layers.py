@@ -134,18 +134,20 @@ def ada_layer_norm(x: torch.Tensor, shift: torch.Tensor, scale_plus_one: torch.T
 def linear_residual(x: torch.Tensor, lin: nn.Linear, residual: torch.Tensor, ws: Workspace | None = None) -> torch.Tensor:
     """residual + lin(x) with the add done by the GEMM (one kernel when lin has no bias).
 
-    With a workspace (the action stages, which own their activations) calls of up to 64 rows take
-    the split-K Triton GEMM, which adds bias and residual in its epilogue: one launch instead of a
-    residual copy, GEMM and bias add. Over 64 rows every column tile re-reads a larger A tile: GR00T's
-    DiT at batch 2 (98 rows) was slower that way (6.31 against 6.25 ms per stage on an H100,
-    bench/experiments/dit_splitk_ab.py); there the GEMM accumulates into ``residual`` in place, which
-    saves the copy, so the caller must not need ``residual`` afterwards."""
-    if ws is None:
-        return addmm_residual(x, lin.weight, lin.bias, residual)
-    if residual.numel() // lin.out_features <= 64:
+    The result may be written into ``residual`` itself: callers pass a residual they do not need
+    afterwards (every block here hands on the sum and drops its input). On cuBLAS the GEMM then
+    accumulates into it in place; ``addmm`` would first copy it (one DtoD copy per projection).
+
+    With a workspace (the action stages) calls of up to 64 rows take the split-K Triton GEMM, which
+    adds bias and residual in its epilogue: one launch instead of GEMM and bias add. Over 64 rows
+    every column tile re-reads a larger A tile: GR00T's DiT at batch 2 (98 rows) was slower that way
+    (6.31 against 6.25 ms per stage on an H100, bench/experiments/dit_splitk_ab.py), so those stay on
+    cuBLAS in place."""
+    if ws is not None and residual.numel() // lin.out_features <= 64:
         return linear_residual_splitk(x, lin.weight, lin.bias, residual, ws)
-    out = addmm_residual(x, lin.weight, lin.bias, residual, inplace=residual.is_contiguous())
-    ws.keep_stats(out, None)  # ``residual`` may have been the output kept with row statistics: not any more
+    out = addmm_residual(x, lin.weight, lin.bias, residual, inplace=True)
+    if ws is not None:
+        ws.keep_stats(out, None)  # ``residual`` may have been the output kept with row statistics: not any more
     return out
 
 
