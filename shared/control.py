@@ -9,7 +9,9 @@ anyone   -> control plane: status                    -> status {executors, table
                                                                 ready, rollout}
 operator -> control plane: apply {config}            -> applied {steps, version}
                            drain / resume {executor} -> ok {version}
-executor -> router (backend, empty robot frame): executor_hello {executor}
+executor -> router (backend, empty robot frame): executor_hello {executor, instance}  (not answered; the
+                           instance is the process's token, as in register: a new one under a known name
+                           is a restarted executor, and the router answers its requests in flight UNAVAILABLE)
 
 A message the control plane cannot act on is answered error {code, message}: `message` is for
 people and names the bad field; `code` is stable (ControlError). A well-formed heartbeat or
@@ -50,6 +52,10 @@ def error(code: ControlError | str, message: str) -> bytes:
     return pack("error", code=ControlError(code).value, message=message)
 
 
+class TableError(ValueError):
+    """A routing table on the wire that cannot be read (RoutingTable.from_wire)."""
+
+
 @dataclass
 class RoutingTable:
     """Which executors serve which model: the control plane's decision, applied by the router."""
@@ -70,8 +76,15 @@ class RoutingTable:
 
     @classmethod
     def from_wire(cls, d: dict[str, Any]) -> "RoutingTable":
-        return cls(version=int(d["version"]), models={n: ModelInfo.from_wire(i) for n, i in d["models"].items()},
-                   routes={m: [str(x) for x in e] for m, e in d["routes"].items()},
-                   quotas={m: {str(e): int(n) for e, n in q.items()} for m, q in d.get("quotas", {}).items()},
-                   limits={m: int(c) for m, c in d.get("limits", {}).items()},
-                   executors=[str(e) for e in d.get("executors", [])])
+        """Raises TableError for a table that cannot be read (a wrong shape or value anywhere in it)."""
+        try:
+            return cls(version=int(d["version"]), models={n: ModelInfo.from_wire(i) for n, i in d["models"].items()},
+                       routes={m: [str(x) for x in e] for m, e in d["routes"].items()},
+                       quotas={m: {str(e): int(n) for e, n in q.items()} for m, q in d.get("quotas", {}).items()},
+                       limits={m: int(c) for m, c in d.get("limits", {}).items()},
+                       executors=[str(e) for e in d.get("executors", [])])
+        # What the conversions above raise on a wrong shape or value: a missing key, a non-map
+        # (indexing a str or list, .items() on a list), int("x"), int(inf). Turned into one error
+        # type so the router can catch "not a table" and nothing that fails while applying one.
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+            raise TableError(f"malformed routing table ({type(exc).__name__}: {exc})") from None

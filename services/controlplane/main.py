@@ -9,8 +9,8 @@ from shared.service import load_or_exit, service_args, setup_logging, stop_event
 def main(argv: list[str] | None = None) -> int:
     args = service_args("control", argv)
     setup_logging("control", args.log_level)
+    stop = stop_event(args.parent_pid)  # before the config load: a SIGTERM from then on is a clean stop
     cfg = load_or_exit(args.config)
-    stop = stop_event(args.parent_pid)
     ControlPlane(cfg).run(stop)
     return 0
 

@@ -29,6 +29,8 @@ def _args(p) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = service_args("executor", argv, _args)
     setup_logging(f"executor[{args.name}]", args.log_level)
+    # Before any slow start-up work (config, models, graphs): a SIGTERM from then on is a clean stop.
+    stop = stop_event(args.parent_pid)
     cfg = load_or_exit(args.config)
     try:
         ex_cfg = cfg.executor(args.name)
@@ -49,7 +51,6 @@ def main(argv: list[str] | None = None) -> int:
         # Several executors usually share the host's cores; intra-op threads on small CPU models
         # only contend with each other (ROBION_CPU_THREADS overrides).
         torch.set_num_threads(int(os.environ.get("ROBION_CPU_THREADS", "1")))
-    stop = stop_event(args.parent_pid)
 
     if device.type == "cuda" and any(e.name == args.name for e in cfg.executors):
         free, _ = torch.cuda.mem_get_info(device)

@@ -163,8 +163,9 @@ class ExecutorIO:
     def register(self) -> None:
         self._ctl_send("register", executor=self.name, device=self.device, instance=self.instance,
                        models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits)
-        # Say hello to the router so its ROUTER socket knows our identity before the first request.
-        self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name)])
+        # Say hello to the router so its ROUTER socket knows our identity before the first request; the
+        # instance tells it a restarted process from this one, so it fails what the old one never answers.
+        self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name, instance=self.instance)])
 
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop``; the caller then calls ``withdraw`` before stopping the engine."""

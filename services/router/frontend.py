@@ -2,7 +2,7 @@
 
 Only the small msgpack header of a request is decoded; image frames are forwarded to the
 executor untouched. Every request gets exactly one answer: the executor's reply, or an
-error from here when the request is malformed, unroutable, or its executor went away.
+error from here when the request is malformed, unroutable, or its executor went away or restarted.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import zmq
 from services.router.routing import Routing
 from shared import control
 from shared.config import ClusterConfig, dial_address
-from shared.control import RoutingTable
+from shared.control import RoutingTable, TableError
 from shared.metrics import RouterMetrics, serve
 from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode, error_frames,
                              header_id, max_frames, message_bytes, unpack_header)
@@ -25,6 +25,7 @@ from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, RequestId
 log = logging.getLogger("robion.router")
 
 MAX_IN_FLIGHT = 65536
+MAX_EXECUTOR_INSTANCES = 4096  # executor names whose process token is remembered (see _executor_hello)
 TABLE_POLL_S = 0.1
 SHUTDOWN_LINGER_MS = 1000  # at shutdown, how long the last answers may take to leave
 WARN_EVERY_S = 5.0  # refusals a peer can trigger at will are logged at most this often, with a count
@@ -100,6 +101,11 @@ class Router:
         self._last_sweep = 0.0
         self._too_many_frames = RateLimitedWarning()
         self._executor_full = RateLimitedWarning()
+        self._bad_hello = RateLimitedWarning()
+        self._bad_table = RateLimitedWarning()
+        self._bad_control = RateLimitedWarning()
+        # Executor name -> the process token its last hello carried: a different one is a restart.
+        self._instances: dict[str, str] = {}
 
     # ------------------------------------------------------------------ loop
 
@@ -240,8 +246,8 @@ class Router:
             return
         robot = frames[1].bytes
         body = frames[2:]
-        if not robot:  # an executor's own message (hello on connect); nothing to forward
-            return
+        if not robot:  # an executor's own message (hello on connect and on each registration)
+            return self._executor_hello(frames[0].bytes, body[0].buffer)
         try:
             header = unpack_header(body[0].buffer)
         except ProtocolError:
@@ -268,21 +274,65 @@ class Router:
             self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {f.executor} did not answer within {timeout} s",
                               f.model)
 
-    def _fail_executor(self, executor: str) -> None:
+    def _fail_executor(self, executor: str, reason: str = "went away") -> None:
+        """Answer every request in flight to ``executor`` UNAVAILABLE: it will never answer them."""
         lost = [k for k, f in self.in_flight.items() if f.executor == executor]
         for key in lost:
             f = self.in_flight.pop(key)
             robot, _, rid = key
-            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {executor} went away", f.model)
+            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {executor} {reason}", f.model)
         if lost:
-            log.warning("executor %s left the routing table with %d requests in flight", executor, len(lost))
+            self.metrics.in_flight.set(len(self.in_flight))
+            log.warning("executor %s %s with %d requests in flight: answered them UNAVAILABLE", executor, reason,
+                        len(lost))
+
+    def _executor_hello(self, identity: bytes, frame: memoryview) -> None:
+        """executor_hello {executor, instance}: a new instance under a known name is a restarted executor.
+
+        The backend socket has ROUTER_HANDOVER, so a new process with the old one's name simply takes
+        the name over and the socket gives no sign of it; the old process's requests would otherwise
+        wait out request_timeout_s. A request forwarded between the new process's connect and its
+        hello went to the new process and is failed with the old ones: at worst a retryable
+        UNAVAILABLE (the new process's answer is then dropped as already answered).
+        """
+        try:
+            msg = control.unpack(frame)
+            name = identity.decode()
+        except (ProtocolError, UnicodeDecodeError) as exc:
+            return self._bad_hello.warn("ignored an unreadable message from executor %r: %s", identity, exc)
+        instance = msg.get("instance")
+        if (msg.get("kind") != "executor_hello" or msg.get("executor", name) != name
+                or not (instance is None or (isinstance(instance, str) and instance))):
+            return self._bad_hello.warn("ignored a malformed hello from executor %r: kind %r, executor %r, instance %r",
+                                        identity, msg.get("kind"), msg.get("executor"), instance)
+        if instance is None:
+            return  # an executor from before the instance field: a restart cannot be told
+        known = self._instances.get(name)
+        if known == instance:
+            return  # the same process again (it says hello each time it registers)
+        if known is None and len(self._instances) >= MAX_EXECUTOR_INSTANCES:
+            self._instances.clear()  # peers inventing names: forget them rather than grow without bound
+        self._instances[name] = instance
+        if known is None:
+            return  # the first hello of the name this router has seen: nothing to compare with
+        log.info("executor %s restarted (instance %s -> %s)", name, known, instance)
+        self._fail_executor(name, "restarted")
 
     # ------------------------------------------------------------------ control plane
 
     def _from_control(self, frames: list[zmq.Frame]) -> None:
-        msg = control.unpack(frames[-1].buffer)
+        # The control plane answers each poll (ten a second) the same way until it is fixed, so what
+        # cannot be read is reported rate-limited and without a traceback, and the current table kept.
+        try:
+            msg = control.unpack(frames[-1].buffer)
+        except ProtocolError as exc:
+            return self._bad_control.warn("ignored an unreadable message from the control plane: %s", exc.message)
         if msg.get("kind") == "table" and msg.get("table") is not None:
-            table = RoutingTable.from_wire(msg["table"])
+            try:
+                table = RoutingTable.from_wire(msg["table"])
+            except TableError as exc:
+                return self._bad_table.warn("kept routing table v%d: the control plane sent an unreadable one: %s",
+                                            self.routing.table.version, exc)
             if table.version != self.routing.table.version:
                 gone = self.routing.update(table)
                 self.metrics.table_version.set(table.version)

@@ -2,18 +2,24 @@
 
 from __future__ import annotations
 
-import zmq
-
-from services.router.frontend import Router
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
 
 
 def main(argv: list[str] | None = None) -> int:
     args = service_args("router", argv)
     setup_logging("router", args.log_level)
-    cfg = load_or_exit(args.config)
+    # The signal handlers go in before any slow start-up work: loading the config imports torch (about
+    # a second), and until the handlers are installed a launcher's SIGTERM (`robion up` stopping, docker
+    # stop) kills the process with the signal instead of the clean exit 0 a stop is. For the same reason
+    # zmq and the router's own modules (numpy, prometheus) are imported only now.
     stop = stop_event(args.parent_pid)
+    import zmq
+
+    from services.router.frontend import Router
+
+    cfg = load_or_exit(args.config)
     context = zmq.Context()
+    # A signal that came during start-up leaves `stop` set: run() returns at once, closing cleanly.
     Router(cfg, context).run(stop)
     # Waits for the answers the router sent while closing (bounded by its sockets' linger); exiting
     # without it could drop them.

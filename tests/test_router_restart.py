@@ -1,0 +1,155 @@
+"""An executor that restarts under the same name: its requests in flight are answered at once.
+
+The router's backend has ROUTER_HANDOVER, so a new process with the old one's name (ZeroMQ
+identity) simply takes over the name; the router only learns of the restart from the new
+process's ``executor_hello``, which carries a per-process ``instance`` token. Requests sent to
+the old process must then get UNAVAILABLE at once rather than after ``router.request_timeout_s``.
+
+The router runs its real loop in a thread (RouterThread); the executors are DEALER sockets with
+the executor's identity, speaking the real control encoding. The last test checks that a real
+ExecutorIO says hello with its instance.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+from services.router import frontend
+from shared import control
+from shared.protocol import ErrorCode, ErrorReply, InferReply, decode, encode
+from tests.test_executor_io import Harness
+from tests.test_router_robustness import INFO, RouterThread, infer_frames, one_executor_table
+
+LONG_TIMEOUT_S = 60.0  # far beyond any wait below: an answer that comes at all came from the restart
+OLD, NEW = "a" * 32, "b" * 32  # instance tokens (uuid4().hex in the executor)
+
+
+def hello(sock: zmq.Socket, **fields) -> None:
+    sock.send_multipart([b"", control.pack("executor_hello", executor="ex0", **fields)])
+
+
+def held_request(rt: RouterThread, robot: zmq.Socket, executor: zmq.Socket, rid: str) -> None:
+    """Send ``rid`` and wait until the router has forwarded it to ``executor``, which never answers."""
+    robot.send_multipart(infer_frames(rid))
+    assert executor.poll(2000), "the request never reached the executor"
+    _, *body = executor.recv_multipart()
+    assert decode(body).id == rid
+
+
+def assert_no_answer(robot: zmq.Socket, wait_s: float = 0.5) -> None:
+    if robot.poll(int(wait_s * 1000)):
+        raise AssertionError(f"unexpected answer {decode(robot.recv_multipart())}")
+
+
+@pytest.mark.parametrize("old_process", ["still connected", "gone"])
+def test_requests_to_a_restarted_executor_are_answered_at_once(tmp_path, old_process):
+    """"still connected": the new process takes the name over from a hung one (ROUTER_HANDOVER);
+    "gone": the old one crashed first. Either way the router cannot tell from its socket."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        old = rt.executor(b"ex0")
+        hello(old, instance=OLD)
+        robot = rt.robot(b"arm")
+        held_request(rt, robot, old, "r1")
+        held_request(rt, robot, old, "r2")
+        if old_process == "gone":
+            old.close(linger=0)
+
+        new = rt.executor(b"ex0")
+        t0 = time.monotonic()
+        hello(new, instance=NEW)
+        answers = {}
+        while len(answers) < 2 and robot.poll(2000):
+            rep = decode(robot.recv_multipart())
+            answers[rep.id] = rep
+        took = time.monotonic() - t0
+        assert set(answers) == {"r1", "r2"}, f"got {answers} within {took:.1f} s"
+        for rep in answers.values():
+            assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.UNAVAILABLE, rep
+            assert "ex0 restarted" in rep.message, rep.message
+        assert took < 2.0
+        assert not rt.router.in_flight
+
+        # The new process serves what comes next, and its answers reach the robot.
+        held_request(rt, robot, new, "r3")
+        assert_no_answer(robot)  # nothing else was failed by the restart
+
+
+@pytest.mark.parametrize("second", ["same instance", "no instance"])
+def test_a_hello_that_is_not_a_restart_fails_nothing(tmp_path, second):
+    """The executor says hello again with its own instance when it re-registers; an executor from
+    before the instance field says hello without one. Neither is a restart."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        ex = rt.executor(b"ex0")
+        if second == "same instance":
+            hello(ex, instance=OLD)
+        else:
+            hello(ex)
+        robot = rt.robot(b"arm")
+        held_request(rt, robot, ex, "r1")
+        hello(ex, **({"instance": OLD} if second == "same instance" else {}))
+        assert_no_answer(robot)
+        assert len(rt.router.in_flight) == 1
+
+
+def test_the_first_hello_of_a_name_fails_nothing(tmp_path):
+    """A router that restarted itself (or missed the first hello) meets an executor with requests in
+    flight: an instance it has not seen for that name is not a restart."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        ex = rt.executor(b"ex0")  # connects without a hello
+        robot = rt.robot(b"arm")
+        held_request(rt, robot, ex, "r1")
+        hello(ex, instance=OLD)
+        assert_no_answer(robot)
+        assert len(rt.router.in_flight) == 1
+
+
+@pytest.mark.parametrize("frame", [
+    b"\xc1not msgpack",
+    control.pack("executor_hello", executor="ex0", instance=7),
+    control.pack("executor_hello", executor="ex0", instance=""),
+    control.pack("something_else", executor="ex0"),
+    b"\x93\x01\x02\x03",  # msgpack, but a list
+], ids=["garbage", "instance not a str", "empty instance", "unknown kind", "not a map"])
+def test_a_malformed_executor_hello_is_logged_once_and_ignored(tmp_path, caplog, monkeypatch, frame):
+    monkeypatch.setattr(frontend, "WARN_EVERY_S", 60.0)  # one report for the whole test, however slow the host
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        ex = rt.executor(b"ex0")
+        hello(ex, instance=OLD)
+        robot = rt.robot(b"arm")
+        held_request(rt, robot, ex, "r1")
+        for _ in range(20):
+            ex.send_multipart([b"", frame])
+        assert_no_answer(robot)
+        assert len(rt.router.in_flight) == 1
+        # The router is unharmed: the executor's answer still reaches the robot.
+        actions = np.zeros((INFO.horizon, INFO.action_dim), np.float32)
+        ex.send_multipart([b"arm", *encode(InferReply(id="r1", model="toy-a", actions=actions))])
+        assert robot.poll(2000)
+        assert isinstance(decode(robot.recv_multipart()), InferReply)
+    records = [r for r in caplog.records if r.name == "robion.router" and r.levelno >= logging.WARNING]
+    assert len(records) == 1, [r.getMessage() for r in records]  # rate-limited, not one per message
+    assert records[0].exc_info is None  # no traceback for what a peer sent
+
+
+def test_the_executor_says_hello_with_its_instance(tmp_path):
+    """A real ExecutorIO (toy model on the CPU): its hello names it and carries its process token."""
+    hellos: list[list[bytes]] = []
+
+    class Recording(Harness):
+        def _wait_hello(self) -> None:
+            assert self.router.poll(10_000), "the executor never said hello"
+            hellos.append(self.router.recv_multipart())
+
+    h = Recording(tmp_path)
+    try:
+        identity, robot, frame = hellos[0]
+        assert identity == b"ex0" and robot == b""
+        assert control.unpack(frame) == {"kind": "executor_hello", "executor": "ex0", "instance": h.io.instance}
+        assert len(h.io.instance) == 32
+    finally:
+        h.close()
