@@ -11,6 +11,7 @@ drive many robots without threads.
 from __future__ import annotations
 
 import itertools
+import logging
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -21,16 +22,25 @@ import zmq
 
 from shared.protocol import (MAX_HEADER_BYTES, MAX_ID_CHARS, ErrorCode, ErrorReply, Hello, InferReply, InferRequest,
                              Metadata, ModelInfo, Ping, Pong, ProtocolError, RequestId, Timings, decode, encode,
-                             message_bytes, valid_id)
+                             header_id, message_bytes, unpack_header, valid_id)
+
+log = logging.getLogger("robion.client")
 
 # The generated ids are "<robot_id>-<tag>-<counter>"; this leaves room for the tag and a 20-digit counter,
 # so an id the client makes is always one the router accepts (at most MAX_ID_CHARS characters).
 MAX_ROBOT_ID_CHARS = MAX_ID_CHARS - 32
 MAX_IDENTITY_BYTES = 255  # ZeroMQ's limit on a socket identity
+MAX_WHY_CHARS = 1024  # a decoder message can quote a peer's string (a dtype, a kind): keep the error readable
+
+# The answer each request expects, besides an error reply; its wire kind names it in a MalformedReply.
+ANSWER_KINDS: dict[type, str] = {InferReply: "reply", Metadata: "metadata", Pong: "pong"}
 
 
 class RobionError(Exception):
-    """The server answered with an error reply; ``code`` is one of shared.protocol.ErrorCode."""
+    """A request failed; ``code`` is one of shared.protocol.ErrorCode.
+
+    Raised as is for the server's error reply; the subclasses below are outcomes the SDK decides.
+    """
 
     def __init__(self, code: ErrorCode, message: str, request_id: str = ""):
         super().__init__(f"{code.value}: {message}")
@@ -44,6 +54,19 @@ class RequestTimeout(RobionError, TimeoutError):
 
     def __init__(self, request_id: str, timeout_s: float):
         super().__init__(ErrorCode.UNAVAILABLE, f"no reply within {timeout_s:.3f} s", request_id)
+
+
+class MalformedReply(RobionError):
+    """The request's answer arrived but cannot be used: garbled past its header, or not an answer to it.
+
+    The request fails at once rather than at its timeout, so a controller learns without waiting that
+    no actions are coming. INTERNAL: a fault on the serving side, and the request may be retried.
+    """
+
+    def __init__(self, request_id: RequestId, why: str):
+        if len(why) > MAX_WHY_CHARS:
+            why = why[:MAX_WHY_CHARS] + "..."
+        super().__init__(ErrorCode.INTERNAL, f"malformed reply: {why}", request_id)
 
 
 @dataclass
@@ -91,7 +114,8 @@ class RobotClient:
             self.socket.close(linger=0)
             raise
         self._ids = itertools.count()
-        self._pending: dict[str, tuple[str, float, int]] = {}  # id -> (model, sent_at, bytes)
+        # id -> (model, sent_at, bytes, the answer's type)
+        self._pending: dict[RequestId, tuple[str, float, int, type]] = {}
         self._done: dict[str, Completion] = {}
         self._metadata: dict[str, ModelInfo] | None = None
 
@@ -106,7 +130,7 @@ class RobotClient:
         rid = request_id or f"{self.robot_id}-{next(self._ids)}"
         frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
                                      state=np.asarray(state, dtype=np.float32), instruction=instruction))
-        self._send(rid, model, frames)
+        self._send(rid, model, frames, InferReply)
         return rid
 
     def poll(self, timeout_s: float = 0.0) -> list[Completion]:
@@ -147,18 +171,18 @@ class RobotClient:
     def metadata(self, refresh: bool = False) -> dict[str, ModelInfo]:
         """The served models: their camera names, image shape, state size, output shape and deadline."""
         if self._metadata is None or refresh:
-            self._round_trip(Hello, "hello", None)
+            self._round_trip(Hello, Metadata, "hello", None)
         assert self._metadata is not None
         return self._metadata
 
     def ping(self, timeout_s: float | None = None) -> float:
         """Round-trip time to the router in seconds."""
-        return self._round_trip(Ping, "ping", timeout_s).latency_s
+        return self._round_trip(Ping, Pong, "ping", timeout_s).latency_s
 
-    def _round_trip(self, message: type, tag: str, timeout_s: float | None) -> Completion:
+    def _round_trip(self, message: type, answer: type, tag: str, timeout_s: float | None) -> Completion:
         """Send a message that carries only an id and wait for its answer; its error is raised."""
         rid = f"{self.robot_id}-{tag}-{next(self._ids)}"
-        self._send(rid, "", encode(message(id=rid)))
+        self._send(rid, "", encode(message(id=rid)), answer)
         done = self._wait_for(rid, timeout_s)
         if done.error is not None:
             raise done.error
@@ -175,7 +199,7 @@ class RobotClient:
 
     # -- internals
 
-    def _send(self, rid: RequestId, model: str, frames: list) -> None:
+    def _send(self, rid: RequestId, model: str, frames: list, answer: type) -> None:
         """Send a request and track it; raise RobionError, with nothing left pending, when it cannot go out."""
         # The router answers a request whose id or header it cannot read with id "" (docs/protocol.md): such
         # an answer matches nothing here, so the request would only ever time out. Refuse it before sending.
@@ -195,7 +219,7 @@ class RobotClient:
         except zmq.Again:
             raise RobionError(ErrorCode.UNAVAILABLE, "the router is not taking requests (send queue full: "
                                                      "unreachable or not reading)", str(rid)) from None
-        self._pending[rid] = (model, sent_at, message_bytes(frames))
+        self._pending[rid] = (model, sent_at, message_bytes(frames), answer)
 
     def _camera_names(self, model: str, n: int) -> list[str]:
         info = self.metadata().get(model)
@@ -221,31 +245,53 @@ class RobotClient:
         return self._done.pop(rid)
 
     def _receive_one(self) -> Completion | None:
-        frames = self.socket.recv_multipart(copy=False)
+        """Read one message; the outcome of the request in flight it answers, or None if it answers none."""
+        frames = [f.buffer for f in self.socket.recv_multipart(copy=False)]
         now = time.monotonic()
-        size = sum(len(f.buffer) for f in frames)
+        size = sum(len(f) for f in frames)
+        # The header first: its id says which request a reply is for even when the rest is broken, so that
+        # request can fail now instead of waiting out its timeout for an answer that has already come.
         try:
-            msg = decode([f.buffer for f in frames])
-        except ProtocolError:
-            return None  # not ours to fail on; a garbled reply is dropped and its request times out
-        rid = getattr(msg, "id", "")
+            header = unpack_header(frames[0])
+        except ProtocolError as exc:
+            # No id to read, so no request to fail: the one it answered (if any) runs to its timeout.
+            log.debug("dropped a reply whose header cannot be decoded: %s", exc.message)
+            return None
+        rid = header_id(header)
+        try:
+            msg = decode(frames, header)
+        except ProtocolError as exc:
+            if rid not in self._pending:
+                log.debug("dropped a malformed reply for no request in flight (id %.80r): %s", rid, exc.message)
+                return None
+            return self._complete(rid, now, size, error=MalformedReply(rid, exc.message))
         if isinstance(msg, Metadata):
             self._metadata = msg.models  # newer news about the served models, whoever asked
         if rid not in self._pending:
             # Not a request in flight: its caller already got RequestTimeout (one outcome per request), or it
             # is an answer no request of ours can match (id ""). Reporting it would invent a completion.
             return None
-        model, sent_at, req_bytes = self._pending.pop(rid)
-        done = Completion(request_id=rid, model=model, sent_at=sent_at, received_at=now, request_bytes=req_bytes,
-                          reply_bytes=size)
+        answer = self._pending[rid][3]
+        if isinstance(msg, ErrorReply):
+            return self._complete(rid, now, size, error=RobionError(msg.code, msg.message, rid))
+        if not isinstance(msg, answer):
+            # Well-formed, but no answer to this request (a pong for an infer, a request kind echoed back):
+            # as unusable as garbage. Taken for an answer, it used to complete an infer "ok" with no actions.
+            return self._complete(rid, now, size, error=MalformedReply(
+                rid, f"kind: a {header['kind']!r} message does not answer this request "
+                     f"(expected {ANSWER_KINDS[answer]!r} or 'error')"))
+        done = self._complete(rid, now, size)
         if isinstance(msg, InferReply):
             done.actions = np.array(msg.actions)  # own the memory: the frame is released after this
             done.timings = msg.timings
-        elif isinstance(msg, ErrorReply):
-            done.error = RobionError(msg.code, msg.message, rid)
-        elif not isinstance(msg, (Metadata, Pong)):
-            return None
         return done
+
+    def _complete(self, rid: RequestId, received_at: float, reply_bytes: int,
+                  error: RobionError | None = None) -> Completion:
+        """End request ``rid``: it is no longer in flight, and this is its one outcome."""
+        model, sent_at, req_bytes, _ = self._pending.pop(rid)
+        return Completion(request_id=rid, model=model, sent_at=sent_at, received_at=received_at,
+                          request_bytes=req_bytes, reply_bytes=reply_bytes, error=error)
 
 
 def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[RobotClient, Completion]]:

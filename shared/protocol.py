@@ -332,7 +332,7 @@ def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Mes
     elif kind == "reply":
         timings = header.get("timings", {})
         # Checked like any other field: a bad value used to escape as AttributeError / TypeError / ValueError,
-        # which callers that catch ProtocolError (the SDK drops a garbled reply) did not expect.
+        # which callers that catch ProtocolError (the SDK fails the request a garbled reply answers) did not expect.
         if not isinstance(timings, dict) or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool)
                 for k, v in timings.items() if k in Timings.__dataclass_fields__):
@@ -353,7 +353,7 @@ def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Mes
         models = _field(header, "models", dict)
         try:
             infos = {name: ModelInfo.from_wire(info) for name, info in models.items()}
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:  # OverflowError: int() of an infinite float
             raise ProtocolError(ErrorCode.BAD_REQUEST, f"models: malformed model description ({exc})") from None
         protocol = header.get("protocol", PROTOCOL_VERSION)
         if type(protocol) is not int:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import zmq
 
-from shared.client import RequestTimeout, RobionError, RobotClient
+from shared.client import MalformedReply, RequestTimeout, RobionError, RobotClient
 from shared.protocol import ErrorCode, decode, pack_header
 from tests.helpers import free_ports
 from tests.test_router_robustness import INFO, RouterThread, one_executor_table
@@ -114,15 +114,21 @@ def test_a_reply_after_its_timeout_is_not_returned_as_a_new_completion(tmp_path)
 @pytest.mark.parametrize("timings", ["fast", [1, 2], {"queue_ms": None}, {"queue_ms": "x"}])
 def test_a_garbled_reply_does_not_crash_the_client(tmp_path, timings):
     """decode() promises ProtocolError on anything malformed; a bad `timings` used to escape as
-    AttributeError / TypeError / ValueError out of infer() and poll()."""
+    AttributeError / TypeError / ValueError out of infer() and poll(). Forwarded by the real router, the
+    garbled reply fails its request with INTERNAL at once (it used to be dropped, leaving a 10 s wait)."""
     images, state = observation()
     with RouterThread(tmp_path, one_executor_table()) as rt:
         garbling_executor(rt, b"ex0", timings)
-        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=0.5, context=rt.ctx) as c:
-            with pytest.raises(RequestTimeout):  # the garbled reply is dropped, as client.py documents
+        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=10.0, context=rt.ctx) as c:
+            t0 = time.monotonic()
+            with pytest.raises(MalformedReply) as e:  # the garbled reply fails its request at once
                 c.infer("toy-a", images, state)
-            c.submit("toy-a", images, state)
-            assert c.poll(0.5) == []
+            assert time.monotonic() - t0 < 2.0, "infer() waited for its timeout"
+            assert e.value.code == ErrorCode.INTERNAL and "timings" in e.value.message, e.value
+            rid = c.submit("toy-a", images, state)
+            got = c.poll(2.0)
+            assert [(x.request_id, x.error.code) for x in got] == [(rid, ErrorCode.INTERNAL)]
+            assert c.pending() == 0
 
 
 def test_submit_does_not_block_forever_while_the_router_is_unreachable(tmp_path):
