@@ -65,6 +65,8 @@ def run(args) -> dict:
     else:
         scenarios = {n: s for n, s in E5_SCENARIOS.items() if not args.scenarios or n in args.scenarios}
         engines = {p: {"kind": "robion", "policy": p} for p in ("esf", "rr", "lqf")}
+        if args.shed_late:  # ESF that also sheds requests that can no longer make their deadline
+            engines["esf-shed"] = {"kind": "robion", "policy": "esf", "shed_late": True}
     common = {"max_batch": args.max_batch}
     if args.sm_table:
         common["sm_table"] = args.sm_table
@@ -135,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=10.0)
     p.add_argument("--deadline", type=float, default=156.0, help="deadline for architectures the paper has none for")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--shed-late", action="store_true",
+                   help="e5: also run ESF with engine.shed_late (requests that cannot finish in time are shed)")
     p.add_argument("--out", default="")
     args = p.parse_args(argv)
     t0 = time.monotonic()

@@ -76,6 +76,8 @@ class EngineConfig:
     policy: str = "esf"  # esf (earliest-SLO-first), rr (round-robin), lqf (largest-queue-first)
     max_queue: int = field(default=256, metadata=_check(positive_number, "expected a positive integer"))
     shed_expired: bool = True  # answer DEADLINE_EXCEEDED instead of running requests already late
+    # also those whose deadline is nearer than their model's recent service time (p90): overload control
+    shed_late: bool = False
     seed: int = 0  # noise generator seed
     # Lockstep engines (robion and its comparison engines):
     sm_policy: str = "table"  # VLM SM restriction: table (profiled per stage pair), none, static

@@ -38,3 +38,9 @@ def test_e5_policies_and_deadlines(tmp_path):
     assert sorted(row["engine"] for row in r["rows"]) == ["esf", "lqf", "rr"]
     assert r["rows"][0]["deadlines_ms"] == {"pi0": 117.0, "xr0": 117.0}
     assert {"esf_over_rr", "esf_over_lqf"} <= set(r["summary"])
+
+
+def test_e5_with_shed_late_adds_that_engine(tmp_path):
+    r = run(tmp_path, "e5", "--scenarios", "equal-deadlines", "--robots", "2", "--shed-late")
+    assert sorted(row["engine"] for row in r["rows"]) == ["esf", "esf-shed", "lqf", "rr"]
+    assert "esf-shed" in r["summary"]["mean_slo_attainment"]

@@ -118,3 +118,73 @@ def test_a_refused_request_does_not_use_up_noise():
         return second.noise
 
     np.testing.assert_array_equal(accepted_noise(True), accepted_noise(False))
+
+
+def test_service_times_estimate_is_a_high_quantile_of_a_recent_window():
+    from services.executor.scheduler import ServiceTimes
+    t = ServiceTimes()
+    assert t.estimate == 0.0  # nothing measured yet: nothing may be shed for lateness
+    for ms in range(1, 11):
+        t.note(ms / 1e3)
+    assert t.estimate == pytest.approx(0.010)  # p90 of 1..10 ms: the 10th value at index 9
+    for _ in range(ServiceTimes.WINDOW):
+        t.note(0.002)  # the engine got faster (a lighter co-located model): the old times age out
+    assert t.estimate == pytest.approx(0.002)
+
+
+def test_shed_late_drops_heads_that_cannot_finish_in_time():
+    q = ModelQueues(["a", "b"], policy="esf", shed_late=True)
+    q.note_service("a", 0.030)
+    q.put(req("a", "a-hopeless", 0.0, 1.020))  # 20 ms left at t=1.0, service takes 30: cannot be met
+    q.put(req("a", "a-ok", 0.1, 1.050))  # 50 ms left: can
+    q.put(req("b", "b-tight", 0.0, 1.010))  # b has no measured service time yet: kept until it expires
+    model, batch, shed = q.take(2, now=1.0)
+    assert [r.id for r in shed] == ["a-hopeless"]
+    assert model == "b" and [r.id for r in batch] == ["b-tight"]
+    assert q.service_estimate("a") == pytest.approx(0.030) and q.service_estimate("b") == 0.0
+    # Without shed_late the same measurement changes nothing: only requests already late are shed.
+    plain = ModelQueues(["a"], policy="esf")
+    plain.note_service("a", 0.030)
+    plain.put(req("a", "a-hopeless", 0.0, 1.020))
+    assert [r.id for r in plain.take(2, now=1.0)[1]] == ["a-hopeless"] and plain.service_estimate("a") == 0.0
+
+
+def test_engine_with_shed_late_answers_a_hopeless_request_deadline_exceeded_at_once():
+    """The real engine measures its own service time from the batches it answers, then refuses a
+    request whose deadline is nearer than that, before it costs GPU time, with a message that says why."""
+    model = build_model("toy", seed=1)
+    results: list = []
+    arrived = threading.Condition()
+
+    def sink(rs):
+        with arrived:
+            results.extend(rs)
+            arrived.notify_all()
+
+    def wait_for(n: int) -> None:
+        with arrived:
+            assert arrived.wait_for(lambda: len(results) >= n, timeout=30)
+
+    eng = MonolithicEngine({"toy": ServedModel("toy", model, 1.0)}, EngineConfig(max_batch=2, shed_late=True),
+                           torch.device("cpu"), sink)
+    eng.prepare()
+    stop = threading.Event()
+    t = threading.Thread(target=eng.run, args=(stop,))
+    t.start()
+    try:
+        for i in range(4):
+            now = time.monotonic()
+            eng.submit(req("toy", f"warm{i}", now, now + 60))
+            wait_for(i + 1)
+    finally:
+        stop.set()
+        t.join(10)
+    estimate = eng.queues.service_estimate("toy")
+    assert estimate > 0 and all(r.actions is not None for r in results)
+    # One step on this thread right after the submit, so the request is still short of its deadline when taken.
+    now = time.monotonic()
+    eng.submit(req("toy", "hopeless", now, now + estimate / 2))  # due before a batch can finish
+    assert eng.step() and len(results) == 5
+    last = results[-1]
+    assert last.request.id == "hopeless" and last.actions is None
+    assert last.error[0] == ErrorCode.DEADLINE_EXCEEDED and "cannot be met" in last.error[1], last.error

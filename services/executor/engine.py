@@ -40,8 +40,8 @@ class Engine:
         self.models = models
         self.cfg = cfg
         self.device = device
-        self.on_results = on_results
-        self.queues = ModelQueues(list(models), cfg.max_queue, cfg.policy, cfg.shed_expired)
+        self.queues = ModelQueues(list(models), cfg.max_queue, cfg.policy, cfg.shed_expired, cfg.shed_late)
+        self.on_results = self._timed(on_results) if cfg.shed_late else on_results
         # Noise is drawn when a request arrives (seeded per model, in arrival order), off the
         # path between batches; a request may bring its own.
         self._noise_gens = {name: torch.Generator().manual_seed(cfg.seed) for name in models}
@@ -85,9 +85,22 @@ class Engine:
         if pending:
             self.on_results([Result(r, error=(ErrorCode.UNAVAILABLE, "executor is shutting down")) for r in pending])
 
+    def _timed(self, sink: ResultSink) -> ResultSink:
+        """``sink`` that also tells the queues each answered batch's service time (``shed_late``)."""
+        def deliver(results: list[Result]) -> None:
+            for r in results:
+                if r.actions is not None and r.admitted > 0:
+                    self.queues.note_service(r.request.model, r.done - r.admitted)
+            sink(results)
+        return deliver
+
     def _report_expired(self, expired: list[Request]) -> None:
         if expired:
-            self.on_results([Result(r, error=(ErrorCode.DEADLINE_EXCEEDED, "deadline passed while queued"))
+            now = time.monotonic()
+            self.on_results([Result(r, error=(ErrorCode.DEADLINE_EXCEEDED, "deadline passed while queued"
+                                              if r.deadline <= now else "deadline cannot be met: "
+                                              f"{(r.deadline - now) * 1e3:.1f} ms left, recent service time "
+                                              f"{self.queues.service_estimate(r.model) * 1e3:.1f} ms"))
                              for r in expired])
 
 

@@ -85,18 +85,58 @@ class LargestQueueFirst:
 POLICIES = {"esf": EarliestSLOFirst, "rr": RoundRobin, "lqf": LargestQueueFirst}
 
 
+class ServiceTimes:
+    """Recent service times of one model (its batch entering the VLM stage -> its reply), for shedding
+    requests that can no longer make their deadline. A high quantile of a short window: it follows the
+    engine's current lockstep length (which co-located models and batch sizes change) and is rarely below
+    what a request taken now will take."""
+
+    WINDOW = 64
+    QUANTILE = 0.9
+
+    def __init__(self) -> None:
+        self._recent: deque[float] = deque(maxlen=self.WINDOW)
+        self._estimate = 0.0
+
+    def note(self, seconds: float) -> None:
+        self._recent.append(seconds)
+        ordered = sorted(self._recent)
+        self._estimate = ordered[min(len(ordered) - 1, int(self.QUANTILE * len(ordered)))]
+
+    @property
+    def estimate(self) -> float:
+        """0 until a reply has been seen: nothing is shed before the engine has measured itself."""
+        return self._estimate
+
+
 class ModelQueues:
     """One bounded FIFO per co-located model, shared by the I/O thread and the engine thread."""
 
-    def __init__(self, models: list[str], max_queue: int = 256, policy: str = "esf", shed_expired: bool = True):
+    def __init__(self, models: list[str], max_queue: int = 256, policy: str = "esf", shed_expired: bool = True,
+                 shed_late: bool = False):
         if policy not in POLICIES:
             raise ValueError(f"unknown queue policy {policy!r}; known: {', '.join(POLICIES)}")
         self._queues: dict[str, deque[Request]] = {m: deque() for m in models}
         self._max_queue = max_queue
         self._policy = POLICIES[policy]()
-        self._shed_expired = shed_expired
+        self._shed_expired = shed_expired or shed_late
+        # Under overload the head of every queue is a request close to its deadline: served, it finishes late
+        # and so does the one behind it (the "domino" of earliest-deadline-first). Shedding the heads that can
+        # no longer finish in time keeps the requests that can (docs/engine.md, "Overload").
+        self._service = {m: ServiceTimes() for m in models} if shed_late else {}
         self._cond = threading.Condition()
         self._pending = 0
+
+    def note_service(self, model: str, seconds: float) -> None:
+        """A batch of ``model`` took ``seconds`` from entering the VLM stage to its results (shed_late)."""
+        times = self._service.get(model)
+        if times is not None:
+            with self._cond:
+                times.note(seconds)
+
+    def service_estimate(self, model: str) -> float:
+        times = self._service.get(model)
+        return times.estimate if times is not None else 0.0
 
     @property
     def policy(self) -> str:
@@ -123,15 +163,18 @@ class ModelQueues:
     def take(self, max_batch: int, now: float | None = None) -> tuple[str, list[Request], list[Request]]:
         """Pick a queue by the policy and dequeue a power-of-two batch from it.
 
-        Returns (model, batch, expired): requests whose deadline already passed are
-        taken out and returned separately when shedding is on, so they cost no GPU time.
+        Returns (model, batch, expired): requests whose deadline already passed (shed_expired), or
+        is nearer than the model's recent service time (shed_late), are taken out and returned
+        separately, so they cost no GPU time.
         """
         now = time.monotonic() if now is None else now
         expired: list[Request] = []
         with self._cond:
             if self._shed_expired:
-                for q in self._queues.values():
-                    while q and q[0].deadline <= now:
+                for model, q in self._queues.items():
+                    times = self._service.get(model)
+                    cutoff = now + (times.estimate if times is not None else 0.0)
+                    while q and q[0].deadline <= cutoff:
                         expired.append(q.popleft())
                 self._pending -= len(expired)
             if self._pending == 0:
