@@ -153,3 +153,36 @@ def test_the_executor_says_hello_with_its_instance(tmp_path):
         assert len(h.io.instance) == 32
     finally:
         h.close()
+
+
+def test_the_executor_says_hello_before_its_engine_starts(tmp_path):
+    """The connect takes the name over at the router at once (ROUTER_HANDOVER), so the hello that tells
+    the router the old process is gone must come with it, not after the engine start (graph capture
+    takes minutes on a GPU): an ExecutorIO that was only constructed has already said hello."""
+    import torch
+
+    from services.executor.hosting import EngineSlot, ModelStore
+    from services.executor.transport import ExecutorIO
+    from shared.config import load_config
+    from shared.metrics import ExecutorMetrics
+    from tests.helpers import cluster_config
+
+    path, _ = cluster_config(tmp_path)
+    cfg = load_config(path)
+    ctx = zmq.Context()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    router.bind(cfg.router.backend)
+    store = ModelStore(torch.device("cpu"))
+    hosted = store.load([cfg.model("toy-a")])
+    slot = EngineSlot(cfg.engine, torch.device("cpu"), lambda results: None)  # never started
+    io = ExecutorIO("ex0", cfg, "cpu", store, slot, hosted, ExecutorMetrics("ex0", "cpu", {"toy-a": 0.5}), context=ctx)
+    try:
+        assert router.poll(5000), "no hello before run()"
+        identity, robot, frame = router.recv_multipart()
+        assert identity == b"ex0" and robot == b""
+        assert control.unpack(frame) == {"kind": "executor_hello", "executor": "ex0", "instance": io.instance}
+    finally:
+        io.close()
+        router.close()
+        ctx.term()

@@ -6,8 +6,8 @@ bias: on cuBLAS that is a copy of the residual, the GEMM, and a bias add (three 
 a workspace, ``layers.linear_residual`` sends it to ``fused.linear_residual_splitk``: one launch
 that adds bias and residual in its epilogue (up to 64 rows: batch 1, 49 rows; the first run of this
 script also sent batch 2's 98 rows there, which was slower). Over 64 rows the GEMM accumulates into
-the residual in place (no copy), then adds the bias. "cublas" here is the stage with no workspace,
-the path before: copy, GEMM, bias add.
+the residual in place (no copy), then adds the bias. "cublas" here is the stage with no workspace:
+GEMM into the residual, bias add (when this was measured, before commit 658932d, also a residual copy).
 
     OUT=/tmp python bench/experiments/dit_splitk_ab.py
     BATCHES=1 ITERS=100 OUT=/tmp python bench/experiments/dit_splitk_ab.py

@@ -65,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, ImportError) as exc:  # weights or tokenizer files that do not fit
         log.error("cannot load models: %s", exc)
         return 2
+    if stop.is_set():  # stopped while loading: measuring limits and starting the engine take seconds more
+        log.info("stopped during start-up")
+        return 0
 
     transport: ExecutorIO | None = None
 
@@ -80,12 +83,17 @@ def main(argv: list[str] | None = None) -> int:
     serve(metrics.registry, args.metrics_port if args.metrics_port is not None else ex_cfg.metrics_port_or_default(index))
     transport = ExecutorIO(args.name, cfg, ex_cfg.device, store, slot, hosted, metrics, limits=limits)
     took = slot.start(hosted)
-    log.info("serving %s with the %s engine (ready in %.1f s)", sorted(hosted.models), cfg.engine.kind, took)
     try:
-        transport.run(stop)
-        # Out of routing first, engine second: stopping the engine while the router still
-        # routes here would fail requests a healthy replica could serve.
-        transport.withdraw()
+        if stop.is_set():
+            # Stopped while the engine started: it never registered, so the control plane never routed
+            # anything here; registering now only to withdraw at once would make it plan twice for nothing.
+            log.info("stopped during start-up")
+        else:
+            log.info("serving %s with the %s engine (ready in %.1f s)", sorted(hosted.models), cfg.engine.kind, took)
+            transport.run(stop)
+            # Out of routing first, engine second: stopping the engine while the router still
+            # routes here would fail requests a healthy replica could serve.
+            transport.withdraw()
     finally:
         slot.stop()
         transport.drain()

@@ -122,6 +122,11 @@ class ExecutorIO:
         self.backend.setsockopt(zmq.LINGER, 1000)
         self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * cfg.router.max_message_bytes + 65536)
         self.backend.connect(dial_address(cfg.router.backend, cfg.router.backend_connect))
+        # Hello at once: with ROUTER_HANDOVER the connect takes this name over at the router, so it must learn
+        # now, not after the engine has started (seconds to minutes), that an earlier process of this name is
+        # gone and its requests in flight will never be answered. Requests routed here meanwhile wait in this
+        # socket for run(); a later hello (each registration) repeats the same instance, which changes nothing.
+        self._hello()
 
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.IDENTITY, name.encode())  # the control plane addresses load requests by name
@@ -163,9 +168,16 @@ class ExecutorIO:
     def register(self) -> None:
         self._ctl_send("register", executor=self.name, device=self.device, instance=self.instance,
                        models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits)
-        # Say hello to the router so its ROUTER socket knows our identity before the first request; the
-        # instance tells it a restarted process from this one, so it fails what the old one never answers.
-        self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name, instance=self.instance)])
+        self._hello()
+
+    def _hello(self) -> None:
+        """Say hello to the router so its ROUTER socket knows our identity before the first request; the
+        instance tells it a restarted process from this one, so it fails what the old one never answers."""
+        try:
+            self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name,
+                                                           instance=self.instance)], zmq.NOBLOCK)
+        except zmq.Again:  # the pipe to the router is full: requests are flowing, and the next registration repeats it
+            log.debug("router pipe full: hello not sent")
 
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop``; the caller then calls ``withdraw`` before stopping the engine."""
