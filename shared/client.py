@@ -5,13 +5,15 @@
     actions = client.infer("pi0-libero", {"cam0": img0, "cam1": img1}, state, "pick up the cup").actions
 
 ``infer`` blocks; ``submit`` + ``poll`` (or ``wait_any`` over many clients) let one process
-drive many robots without threads.
+drive many robots without threads. Every request gets exactly one outcome: its reply, or
+RequestTimeout once it is older than the client's ``timeout_s`` (``poll`` reports that too).
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
+import math
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -114,7 +116,8 @@ class RobotClient:
             self.socket.close(linger=0)
             raise
         self._ids = itertools.count()
-        # id -> (model, sent_at, bytes, the answer's type)
+        # id -> (model, sent_at, bytes, the answer's type). In send order, hence in sent_at order (a request
+        # is added once, when it goes out): the oldest, the next to expire, is always the first.
         self._pending: dict[RequestId, tuple[str, float, int, type]] = {}
         self._done: dict[str, Completion] = {}
         self._metadata: dict[str, ModelInfo] | None = None
@@ -134,7 +137,12 @@ class RobotClient:
         return rid
 
     def poll(self, timeout_s: float = 0.0) -> list[Completion]:
-        """Completions that arrived within ``timeout_s`` (0: only those already here)."""
+        """Completions that arrived within ``timeout_s`` (0: only those already here).
+
+        A submitted request still unanswered ``self.timeout_s`` after it was sent is completed here with a
+        RequestTimeout error (code UNAVAILABLE), and a reply for it that comes later is dropped: each
+        request gets exactly one outcome, and ``pending()`` reaches 0 even when no reply ever comes.
+        """
         # A blocking call (infer, ping, metadata) reads every reply off the shared socket while it waits
         # for its own and keeps the others in _done; they are this poll's results, returned first. With
         # any in hand, poll only gathers what else is already here and does not wait.
@@ -142,18 +150,28 @@ class RobotClient:
         self._done.clear()
         deadline = time.monotonic() + timeout_s
         while True:
-            wait_ms = max(0, int((deadline - time.monotonic()) * 1000)) if not out else 0
-            if not self.socket.poll(wait_ms):
+            # Replies already here first: a request whose reply has come is not one to give up on.
+            while self.socket.poll(0):
+                done = self._receive_one()
+                if done is not None:
+                    out.append(done)
+            now = time.monotonic()
+            out.extend(self._expire(now))
+            if out or now >= deadline:
                 return out
-            done = self._receive_one()
-            if done is not None:
-                out.append(done)
+            # Wait for a reply, but no longer than until the next request expires.
+            wake = deadline
+            expiry = self._next_expiry()
+            if expiry is not None:
+                wake = min(wake, expiry)
+            self.socket.poll(None if math.isinf(wake) else max(1, math.ceil((wake - now) * 1000)))
 
     def pending(self) -> int:
         """Submitted requests whose outcome ``poll`` has not returned yet.
 
         Outcomes a blocking call already read off the socket are counted until ``poll`` returns them, so
-        ``while client.pending(): client.poll(...)`` never stops with results left behind.
+        ``while client.pending(): client.poll(...)`` never stops with results left behind. A request no
+        reply ever comes for counts until ``poll`` reports its RequestTimeout, ``timeout_s`` after its send.
         """
         return len(self._pending) + len(self._done)
 
@@ -220,6 +238,20 @@ class RobotClient:
             raise RobionError(ErrorCode.UNAVAILABLE, "the router is not taking requests (send queue full: "
                                                      "unreachable or not reading)", str(rid)) from None
         self._pending[rid] = (model, sent_at, message_bytes(frames), answer)
+
+    def _next_expiry(self) -> float | None:
+        """When the oldest request in flight times out (time.monotonic()); None with none in flight."""
+        oldest = next(iter(self._pending.values()), None)  # the first is the oldest
+        return None if oldest is None else oldest[1] + self.timeout_s
+
+    def _expire(self, now: float) -> list[Completion]:
+        """Complete, with RequestTimeout, every request in flight sent ``self.timeout_s`` or longer ago."""
+        stale = []
+        for rid, (_, sent_at, _, _) in self._pending.items():  # oldest first: stop at the first in time
+            if now - sent_at < self.timeout_s:
+                break
+            stale.append(rid)
+        return [self._complete(rid, now, 0, error=RequestTimeout(rid, self.timeout_s)) for rid in stale]
 
     def _camera_names(self, model: str, n: int) -> list[str]:
         info = self.metadata().get(model)
@@ -295,18 +327,36 @@ class RobotClient:
 
 
 def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[RobotClient, Completion]]:
-    """Wait until any client has a completion (or the timeout passes) and collect all that arrived."""
+    """Wait until any client has a completion (or the timeout passes) and collect all that arrived.
+
+    Completions include requests that timed out (RequestTimeout, as ``RobotClient.poll`` reports them):
+    the wait ends when the first request in flight on any client expires.
+    """
     clients = list(clients)
     poller = zmq.Poller()
     by_socket = {}
     for c in clients:
         poller.register(c.socket, zmq.POLLIN)
         by_socket[c.socket] = c
+
+    def expired(c: RobotClient, now: float) -> bool:
+        expiry = c._next_expiry()
+        return expiry is not None and expiry <= now
+
     # A client may hold outcomes that a blocking call of it read off the socket already: the socket
-    # need not be readable for those, and they are ready now, so do not wait for anything else.
-    ready = [c for c in clients if c._done]
-    events = poller.poll(0 if ready else max(0, int(timeout_s * 1000)))
-    ready += [by_socket[sock] for sock, _ in events if not by_socket[sock]._done]
+    # need not be readable for those, and they are ready now, so do not wait for anything else. Nor
+    # for a client with a request past its timeout: that request's outcome is ready too.
+    now = time.monotonic()
+    ready = [c for c in clients if c._done or expired(c, now)]
+    wait_ms = max(0, int(timeout_s * 1000))
+    expiries = [e for e in (c._next_expiry() for c in clients) if e is not None and not math.isinf(e)]
+    if expiries:
+        wait_ms = min(wait_ms, max(0, math.ceil((min(expiries) - now) * 1000)))
+    events = poller.poll(0 if ready else wait_ms)
+    readable = {by_socket[sock] for sock, _ in events}
+    now = time.monotonic()
+    listed = set(ready)
+    ready += [c for c in clients if c not in listed and (c in readable or expired(c, now))]
     out: list[tuple[RobotClient, Completion]] = []
     for client in ready:
         out.extend((client, c) for c in client.poll(0))

@@ -76,15 +76,52 @@ class RoutingTable:
 
     @classmethod
     def from_wire(cls, d: dict[str, Any]) -> "RoutingTable":
-        """Raises TableError for a table that cannot be read (a wrong shape or value anywhere in it)."""
-        try:
-            return cls(version=int(d["version"]), models={n: ModelInfo.from_wire(i) for n, i in d["models"].items()},
-                       routes={m: [str(x) for x in e] for m, e in d["routes"].items()},
-                       quotas={m: {str(e): int(n) for e, n in q.items()} for m, q in d.get("quotas", {}).items()},
-                       limits={m: int(c) for m, c in d.get("limits", {}).items()},
-                       executors=[str(e) for e in d.get("executors", [])])
-        # What the conversions above raise on a wrong shape or value: a missing key, a non-map
-        # (indexing a str or list, .items() on a list), int("x"), int(inf). Turned into one error
-        # type so the router can catch "not a table" and nothing that fails while applying one.
-        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
-            raise TableError(f"malformed routing table ({type(exc).__name__}: {exc})") from None
+        """Raises TableError, naming the field, for a table that cannot be read (a wrong shape or value anywhere).
+
+        Strict on shape: nothing is converted into what it should have been. A str where a list of
+        executors belongs is not taken for its characters, nor "7" or 2.9 for version 7 or 2.
+        """
+        if not isinstance(d, dict):
+            raise TableError(f"malformed routing table: expected a map, got {type(d).__name__}")
+        if "version" not in d:
+            raise TableError("malformed routing table: version: missing")
+        if "models" not in d or "routes" not in d:
+            raise TableError(f"malformed routing table: {'models' if 'models' not in d else 'routes'}: missing")
+        version = _int(d["version"], "version")
+        models = {}
+        for name, info in _str_map(d["models"], "models").items():
+            # ModelInfo.from_wire converts; what it raises on a wrong shape or value: a missing key, a
+            # non-map, int("x"), int(inf).
+            try:
+                models[name] = ModelInfo.from_wire(info)
+            except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+                raise TableError(f"malformed routing table: models[{name!r}]: {type(exc).__name__}: {exc}") from None
+        routes = {m: _str_list(e, f"routes[{m!r}]") for m, e in _str_map(d["routes"], "routes").items()}
+        quotas = {m: {e: _int(n, f"quotas[{m!r}][{e!r}]") for e, n in _str_map(q, f"quotas[{m!r}]").items()}
+                  for m, q in _str_map(d.get("quotas", {}), "quotas").items()}
+        limits = {m: _int(c, f"limits[{m!r}]") for m, c in _str_map(d.get("limits", {}), "limits").items()}
+        executors = _str_list(d.get("executors", []), "executors")
+        return cls(version=version, models=models, routes=routes, quotas=quotas, limits=limits, executors=executors)
+
+
+def _int(value: Any, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TableError(f"malformed routing table: {name}: expected an int, got {type(value).__name__} {value!r:.80}")
+    return value
+
+
+def _str_map(value: Any, name: str) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise TableError(f"malformed routing table: {name}: expected a map, got {type(value).__name__}")
+    for key in value:
+        if not isinstance(key, str):
+            raise TableError(f"malformed routing table: {name}: expected str keys, got {type(key).__name__} "
+                             f"{key!r:.80}")
+    return value
+
+
+def _str_list(value: Any, name: str) -> list[str]:
+    if not isinstance(value, (list, tuple)) or not all(isinstance(x, str) for x in value):
+        raise TableError(f"malformed routing table: {name}: expected a list of executor names (str), got "
+                         f"{value!r:.80}")
+    return list(value)

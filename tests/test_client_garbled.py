@@ -254,16 +254,24 @@ def test_an_unattributable_reply_is_dropped_and_the_client_keeps_working(serve, 
 
 @pytest.mark.parametrize("case", list(UNATTRIBUTABLE))
 def test_an_unattributable_reply_alone_leaves_its_request_to_time_out(serve, case):
-    """With no good answer after it, the request is still in flight: nothing to fail, so the timeout decides."""
+    """With no good answer after it, the request is still in flight: nothing to fail, so the timeout decides.
+
+    Once the client's timeout has passed, poll() reports it as RequestTimeout: it used to stay pending for ever.
+    """
     build = UNATTRIBUTABLE[case]
     router, c = serve(lambda rid, kind: [build(rid)])
     with c:
+        c.timeout_s = 1.5  # the client's timeout, read when poll() runs
         rid = c.submit("toy", IMAGES, STATE)
         assert c.poll(0.3) == []
         assert c.pending() == 1
         with pytest.raises(RequestTimeout):
             c.infer("toy", IMAGES, STATE, timeout_s=0.3)
-        assert c.pending() == 1 and rid in c._pending
+        assert c.pending() == 1 and rid in c._pending  # infer's own request is not left behind
+        got = poll_until(c, 3.0)
+        assert [x.request_id for x in got] == [rid], "the request never timed out"
+        assert isinstance(got[0].error, RequestTimeout) and got[0].error.code == ErrorCode.UNAVAILABLE
+        assert c.pending() == 0 and c.poll(0.1) == []
 
 
 def test_a_late_malformed_reply_after_a_timeout_is_not_a_new_completion(serve):

@@ -197,6 +197,35 @@ def test_a_full_executor_falls_back_to_another(tmp_path):
         assert got["ok"] > queued, (got, queued)  # ex1 took what ex0's full queue could not
 
 
+def in_flight_gauge(rt: RouterThread) -> float | None:
+    return rt.router.metrics.registry.get_sample_value("robion_router_in_flight_requests")
+
+
+def test_the_in_flight_gauge_falls_when_requests_time_out(tmp_path):
+    """Requests the router answers UNAVAILABLE at request_timeout_s leave the in-flight gauge too."""
+    n = 3
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=0.5) as rt:
+        rt.executor(b"ex0")  # connected, never answers
+        robot = rt.robot(b"arm")
+        for i in range(n):
+            robot.send_multipart(infer_frames(f"t{i}"))
+        end = time.monotonic() + 5
+        while in_flight_gauge(rt) != n and time.monotonic() < end:
+            time.sleep(0.01)
+        assert in_flight_gauge(rt) == n
+        codes = []
+        while len(codes) < n and robot.poll(3000):
+            rep = decode(robot.recv_multipart())
+            assert isinstance(rep, ErrorReply)
+            codes.append(rep.code)
+        assert codes == [ErrorCode.UNAVAILABLE] * n
+        end = time.monotonic() + 2  # the router loop sets the gauge; this thread only reads it
+        while in_flight_gauge(rt) != 0 and time.monotonic() < end:
+            time.sleep(0.01)
+        assert not rt.router.in_flight
+        assert in_flight_gauge(rt) == 0, "the gauge still counts the timed-out requests"
+
+
 # ----------------------------------------------------------------------------- 2: no executor != unknown model
 
 

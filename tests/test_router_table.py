@@ -32,7 +32,51 @@ MALFORMED = {
     "models a list": {**GOOD.to_wire(), "models": ["toy-a"]},
     "model description broken": {**GOOD.to_wire(), "models": {"toy-a": {"cameras": ["cam0"]}}},
     "quotas not numbers": {**GOOD.to_wire(), "quotas": {"toy-a": {"ex0": "many"}}},
+    # A str is iterable: read as a list it used to route toy-a to executors "e", "x" and "0".
+    "route a string": {**GOOD.to_wire(), "routes": {"toy-a": "ex0", "toy-b": ["ex0"]}},
 }
+
+FULL = RoutingTable(version=3, models={"toy-a": INFO, "toy-b": INFO}, routes={"toy-a": ["ex0", "ex1"], "toy-b": []},
+                    quotas={"toy-a": {"ex0": 3, "ex1": 2}}, limits={"toy-a": 4}, executors=["ex0", "ex1", "ex2"])
+
+# Tables of the wrong shape that conversions used to accept (int("7"), int(2.9), list("ex0"), str(1)), and the
+# field the TableError must name.
+WRONG_SHAPE = {
+    "route a string": ({"routes": {"toy-a": "ex0", "toy-b": []}}, "routes['toy-a']"),
+    "route a map": ({"routes": {"toy-a": {"ex0": 1}, "toy-b": []}}, "routes['toy-a']"),
+    "route entry not a string": ({"routes": {"toy-a": ["ex0", 1], "toy-b": []}}, "routes['toy-a']"),
+    "routes not a map": ({"routes": [["toy-a", ["ex0"]]]}, "routes"),
+    "model name not a string": ({"routes": {1: ["ex0"]}}, "routes"),
+    "version a numeric string": ({"version": "7"}, "version"),
+    "version a float": ({"version": 2.9}, "version"),
+    "version a whole float": ({"version": 3.0}, "version"),
+    "version a bool": ({"version": True}, "version"),
+    "version missing": ({"version": None}, "version"),
+    "quotas not a map": ({"quotas": [1, 2]}, "quotas"),
+    "quota not a map": ({"quotas": {"toy-a": 5}}, "quotas['toy-a']"),
+    "quota a float": ({"quotas": {"toy-a": {"ex0": 1.5}}}, "quotas['toy-a']['ex0']"),
+    "quota a numeric string": ({"quotas": {"toy-a": {"ex0": "3"}}}, "quotas['toy-a']['ex0']"),
+    "quota a bool": ({"quotas": {"toy-a": {"ex0": True}}}, "quotas['toy-a']['ex0']"),
+    "quota executor not a string": ({"quotas": {"toy-a": {0: 3}}}, "quotas['toy-a']"),
+    "limits not a map": ({"limits": 4}, "limits"),
+    "limit a float": ({"limits": {"toy-a": 4.5}}, "limits['toy-a']"),
+    "limit a numeric string": ({"limits": {"toy-a": "4"}}, "limits['toy-a']"),
+    "executors a string": ({"executors": "ex0"}, "executors"),
+    "executors a map": ({"executors": {"ex0": 1}}, "executors"),
+    "executor not a string": ({"executors": ["ex0", 1]}, "executors"),
+    "models not a map": ({"models": ["toy-a"]}, "models"),
+}
+
+
+def wrong(changes: dict) -> dict:
+    """FULL's wire form with ``changes``; a change of None removes the field."""
+    d = FULL.to_wire()
+    for k, v in changes.items():
+        if v is None:
+            d.pop(k)
+        else:
+            d[k] = v
+    return d
 
 
 class ControlPlane:
@@ -101,3 +145,21 @@ def test_from_wire_raises_table_error(case):
 
 def test_from_wire_reads_what_to_wire_writes():
     assert RoutingTable.from_wire(GOOD.to_wire()) == GOOD
+    assert RoutingTable.from_wire(FULL.to_wire()) == FULL
+    # ... and what reaches the router: the table message through msgpack.
+    assert RoutingTable.from_wire(control.unpack(control.pack("table", table=FULL.to_wire()))["table"]) == FULL
+
+
+def test_from_wire_takes_tuples_for_lists_and_defaults_the_optional_fields():
+    d = {**FULL.to_wire(), "routes": {"toy-a": ("ex0", "ex1"), "toy-b": ()}, "executors": ("ex0", "ex1", "ex2")}
+    assert RoutingTable.from_wire(d) == FULL
+    bare = {k: v for k, v in FULL.to_wire().items() if k not in ("quotas", "limits", "executors")}
+    assert RoutingTable.from_wire(bare) == RoutingTable(version=3, models=FULL.models, routes=FULL.routes)
+
+
+@pytest.mark.parametrize("case", list(WRONG_SHAPE))
+def test_from_wire_refuses_a_wrong_shape_and_names_the_field(case):
+    changes, field_name = WRONG_SHAPE[case]
+    with pytest.raises(TableError) as e:
+        RoutingTable.from_wire(wrong(changes))
+    assert field_name in str(e.value), str(e.value)

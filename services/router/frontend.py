@@ -149,6 +149,7 @@ class Router:
         for (robot, _, rid), f in list(self.in_flight.items()):
             self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, "the router is shutting down", f.model)
         self.in_flight.clear()
+        self.metrics.in_flight.set(0)
         # A bounded linger, not 0, so those answers go out before the context terminates (main.py waits
         # for it). It also lets each connection finish the message it is half-way through: with linger 0
         # the pipe is cut mid-message, and a peer dropping its connection at that moment (peers are often
@@ -273,6 +274,8 @@ class Router:
             robot, _, rid = key
             self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {f.executor} did not answer within {timeout} s",
                               f.model)
+        if stale:
+            self.metrics.in_flight.set(len(self.in_flight))
 
     def _fail_executor(self, executor: str, reason: str = "went away") -> None:
         """Answer every request in flight to ``executor`` UNAVAILABLE: it will never answer them."""
