@@ -19,7 +19,8 @@ import zmq
 
 from shared.client import RequestTimeout, RobionError, RobotClient, wait_any
 from shared.protocol import ErrorCode
-from tests.test_client_garbled import ACTIONS, IMAGES, STATE, UNATTRIBUTABLE, Answer, FakeRouter, Frames, good_reply
+from tests.test_client_garbled import (ACTIONS, IMAGES, STATE, UNATTRIBUTABLE, Answer, FakeRouter, Frames, good_reply,
+                                       poll_until)
 
 TIMEOUT_S = 0.3
 SLACK_S = 1.0  # scheduling slack on a busy host: an expiry must come within TIMEOUT_S + SLACK_S
@@ -47,14 +48,6 @@ def serve():
     for thing in reversed(made):
         thing.close()
     ctx.term()
-
-
-def poll_until(client: RobotClient, within_s: float) -> list:
-    got: list = []
-    end = time.monotonic() + within_s
-    while not got and time.monotonic() < end:
-        got += client.poll(0.05)
-    return got
 
 
 def check_timeout(done, rid: str, timeout_s: float = TIMEOUT_S) -> None:
