@@ -62,6 +62,8 @@ def run(args) -> dict:
     if args.experiment == "e4":
         scenarios = {n: (s, {}) for n, s in E4_SCENARIOS.items() if not args.scenarios or n in args.scenarios}
         engines = {"robion": {"kind": "robion"}, "monolithic": {"kind": "monolithic"}}
+        if args.shed_late:
+            engines["robion-shed"] = {"kind": "robion", "shed_late": True}
     else:
         scenarios = {n: s for n, s in E5_SCENARIOS.items() if not args.scenarios or n in args.scenarios}
         engines = {p: {"kind": "robion", "policy": p} for p in ("esf", "rr", "lqf")}
@@ -138,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--deadline", type=float, default=156.0, help="deadline for architectures the paper has none for")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--shed-late", action="store_true",
-                   help="e5: also run ESF with engine.shed_late (requests that cannot finish in time are shed)")
+                   help="also run Robion (ESF) with engine.shed_late: requests that cannot finish in time are shed")
     p.add_argument("--out", default="")
     args = p.parse_args(argv)
     t0 = time.monotonic()

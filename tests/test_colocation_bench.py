@@ -44,3 +44,9 @@ def test_e5_with_shed_late_adds_that_engine(tmp_path):
     r = run(tmp_path, "e5", "--scenarios", "equal-deadlines", "--robots", "2", "--shed-late")
     assert sorted(row["engine"] for row in r["rows"]) == ["esf", "esf-shed", "lqf", "rr"]
     assert "esf-shed" in r["summary"]["mean_slo_attainment"]
+
+
+def test_e4_with_shed_late_adds_that_engine(tmp_path):
+    r = run(tmp_path, "e4", "--scenarios", "skewed-2", "--robots", "4", "--shed-late")
+    assert sorted(row["engine"] for row in r["rows"]) == ["monolithic", "robion", "robion-shed"]
+    assert "robion-shed" in r["summary"]["mean_miss_ratio"]
