@@ -123,35 +123,52 @@ def test_a_refused_request_does_not_use_up_noise():
 def test_service_times_estimate_is_a_high_quantile_of_a_recent_window():
     from services.executor.scheduler import ServiceTimes
     t = ServiceTimes()
-    assert t.estimate == 0.0  # nothing measured yet: nothing may be shed for lateness
+    assert t.estimate(0.0) == 0.0  # nothing measured yet: nothing may be shed for lateness
     for ms in range(1, 11):
-        t.note(ms / 1e3)
-    assert t.estimate == pytest.approx(0.010)  # p90 of 1..10 ms: the 10th value at index 9
+        t.note(ms / 1e3, now=1.0)
+    assert t.estimate(1.0) == pytest.approx(0.010)  # p90 of 1..10 ms: the 10th value at index 9
     for _ in range(ServiceTimes.WINDOW):
-        t.note(0.002)  # the engine got faster (a lighter co-located model): the old times age out
-    assert t.estimate == pytest.approx(0.002)
+        t.note(0.002, now=1.0)  # the engine got faster (a lighter co-located model): the old times age out
+    assert t.estimate(1.0) == pytest.approx(0.002)
+    assert t.estimate(1.0 + ServiceTimes.STALE_S + 0.1) == 0.0  # no reply for a while: measured afresh
+
+
+def test_shed_late_recovers_from_an_estimate_above_the_deadline():
+    """After a stall the estimate can exceed a model's whole deadline: every request is then shed, no
+    batch runs, and no new measurement could lower it. The estimate expires instead, and requests run."""
+    q = ModelQueues(["a"], policy="esf", shed_late=True)
+    q.note_service("a", 0.200, now=0.0)  # one very slow batch; the deadline budget is 100 ms
+    q.put(req("a", "shed", 0.5, 0.6))
+    assert [r.id for r in q.take(2, now=0.5)[2]] == ["shed"]
+    from services.executor.scheduler import ServiceTimes
+    later = 0.0 + ServiceTimes.STALE_S + 0.5  # no reply since the slow batch
+    q.put(req("a", "runs", later, later + 0.1))
+    model, batch, shed = q.take(2, now=later)
+    assert model == "a" and [r.id for r in batch] == ["runs"] and shed == []
 
 
 def test_shed_late_drops_heads_that_cannot_finish_in_time():
     q = ModelQueues(["a", "b"], policy="esf", shed_late=True)
-    q.note_service("a", 0.030)
+    q.note_service("a", 0.030, now=1.0)
     q.put(req("a", "a-hopeless", 0.0, 1.020))  # 20 ms left at t=1.0, service takes 30: cannot be met
     q.put(req("a", "a-ok", 0.1, 1.050))  # 50 ms left: can
     q.put(req("b", "b-tight", 0.0, 1.010))  # b has no measured service time yet: kept until it expires
     model, batch, shed = q.take(2, now=1.0)
     assert [r.id for r in shed] == ["a-hopeless"]
     assert model == "b" and [r.id for r in batch] == ["b-tight"]
-    assert q.service_estimate("a") == pytest.approx(0.030) and q.service_estimate("b") == 0.0
+    assert q.service_estimate("a", now=1.0) == pytest.approx(0.030) and q.service_estimate("b", now=1.0) == 0.0
     # Without shed_late the same measurement changes nothing: only requests already late are shed.
     plain = ModelQueues(["a"], policy="esf")
-    plain.note_service("a", 0.030)
+    plain.note_service("a", 0.030, now=1.0)
     plain.put(req("a", "a-hopeless", 0.0, 1.020))
     assert [r.id for r in plain.take(2, now=1.0)[1]] == ["a-hopeless"] and plain.service_estimate("a") == 0.0
 
 
-def test_engine_with_shed_late_answers_a_hopeless_request_deadline_exceeded_at_once():
+def test_engine_with_shed_late_answers_a_hopeless_request_deadline_exceeded_at_once(monkeypatch):
     """The real engine measures its own service time from the batches it answers, then refuses a
     request whose deadline is nearer than that, before it costs GPU time, with a message that says why."""
+    from services.executor.scheduler import ServiceTimes
+    monkeypatch.setattr(ServiceTimes, "STALE_S", 60.0)  # a slow test machine must not age the measurements out
     model = build_model("toy", seed=1)
     results: list = []
     arrived = threading.Condition()

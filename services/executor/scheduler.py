@@ -89,23 +89,33 @@ class ServiceTimes:
     """Recent service times of one model (its batch entering the VLM stage -> its reply), for shedding
     requests that can no longer make their deadline. A high quantile of a short window: it follows the
     engine's current lockstep length (which co-located models and batch sizes change) and is rarely below
-    what a request taken now will take."""
+    what a request taken now will take.
+
+    Measurements expire: an estimate above the model's whole deadline (after a stall, a reload, a burst
+    of slow locksteps) would shed every request, so no batch would run and nothing would ever lower it.
+    Without a reply for ``STALE_S`` the window is dropped and the next requests run and measure afresh."""
 
     WINDOW = 64
     QUANTILE = 0.9
+    STALE_S = 1.0
 
     def __init__(self) -> None:
         self._recent: deque[float] = deque(maxlen=self.WINDOW)
         self._estimate = 0.0
+        self._last = float("-inf")
 
-    def note(self, seconds: float) -> None:
+    def note(self, seconds: float, now: float | None = None) -> None:
         self._recent.append(seconds)
+        self._last = time.monotonic() if now is None else now
         ordered = sorted(self._recent)
         self._estimate = ordered[min(len(ordered) - 1, int(self.QUANTILE * len(ordered)))]
 
-    @property
-    def estimate(self) -> float:
-        """0 until a reply has been seen: nothing is shed before the engine has measured itself."""
+    def estimate(self, now: float | None = None) -> float:
+        """0 until a reply has been seen, and again once the last one is older than STALE_S."""
+        now = time.monotonic() if now is None else now
+        if now - self._last > self.STALE_S:
+            self._recent.clear()
+            self._estimate = 0.0
         return self._estimate
 
 
@@ -127,16 +137,19 @@ class ModelQueues:
         self._cond = threading.Condition()
         self._pending = 0
 
-    def note_service(self, model: str, seconds: float) -> None:
+    def note_service(self, model: str, seconds: float, now: float | None = None) -> None:
         """A batch of ``model`` took ``seconds`` from entering the VLM stage to its results (shed_late)."""
         times = self._service.get(model)
         if times is not None:
             with self._cond:
-                times.note(seconds)
+                times.note(seconds, now)
 
-    def service_estimate(self, model: str) -> float:
+    def service_estimate(self, model: str, now: float | None = None) -> float:
         times = self._service.get(model)
-        return times.estimate if times is not None else 0.0
+        if times is None:
+            return 0.0
+        with self._cond:
+            return times.estimate(now)
 
     @property
     def policy(self) -> str:
@@ -173,7 +186,7 @@ class ModelQueues:
             if self._shed_expired:
                 for model, q in self._queues.items():
                     times = self._service.get(model)
-                    cutoff = now + (times.estimate if times is not None else 0.0)
+                    cutoff = now + (times.estimate(now) if times is not None else 0.0)
                     while q and q[0].deadline <= cutoff:
                         expired.append(q.popleft())
                 self._pending -= len(expired)
