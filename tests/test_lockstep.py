@@ -261,6 +261,30 @@ def test_expired_requests_are_shed_not_run():
     assert eng.telemetry.records() == []
 
 
+def test_shed_late_in_the_lockstep_engine_measures_and_sheds_with_its_reason(monkeypatch):
+    """The lockstep engine reports service times too (VLM lockstep start -> action lockstep end), and a
+    request it sheds as unable to make its deadline says so, not "deadline passed"."""
+    from services.executor.scheduler import ServiceTimes
+    monkeypatch.setattr(ServiceTimes, "STALE_S", 60.0)  # a slow test machine must not age the measurements out
+    model = build_model("toy", seed=1)
+    eng, sink = engine_for({"toy": (model, 1.0)}, shed_late=True)
+    rng = np.random.default_rng(7)
+    for i in range(3):
+        r = make_req(model, f"w{i}", rng)
+        r.model = "toy"
+        eng.submit(r)
+        drive(eng)
+    estimate = eng.queues.service_estimate("toy")
+    assert estimate > 0 and all(x.actions is not None for x in sink.results)
+    r = make_req(model, "hopeless", rng)
+    r.model, r.arrival, r.deadline = "toy", r.arrival - estimate, r.arrival + estimate / 2
+    eng.submit(r)
+    drive(eng)
+    last = sink.results[-1]
+    assert last.request.id == "hopeless" and last.error[0] == ErrorCode.DEADLINE_EXCEEDED
+    assert "cannot be met" in last.error[1], last.error
+
+
 def test_sm_policy_levels_follow_the_table_and_solo_vlm_is_unrestricted():
     model = build_model("toy", seed=1)
     table = TableLevel({("toy:tiny", 2, "toy:tiny", 2): 96, ("toy:tiny", 1, "toy:tiny", 2): 64})

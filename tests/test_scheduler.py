@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from services.executor.engine import MonolithicEngine, ServedModel
-from services.executor.scheduler import ModelQueues, Request, batch_size_for
+from services.executor.scheduler import ModelQueues, Request, ServiceTimes, batch_size_for
 from shared.config import EngineConfig
 from shared.models import build_model
 from shared.protocol import ErrorCode, ProtocolError
@@ -121,7 +121,6 @@ def test_a_refused_request_does_not_use_up_noise():
 
 
 def test_service_times_estimate_is_a_high_quantile_of_a_recent_window():
-    from services.executor.scheduler import ServiceTimes
     t = ServiceTimes()
     assert t.estimate(0.0) == 0.0  # nothing measured yet: nothing may be shed for lateness
     for ms in range(1, 11):
@@ -133,18 +132,21 @@ def test_service_times_estimate_is_a_high_quantile_of_a_recent_window():
     assert t.estimate(1.0 + ServiceTimes.STALE_S + 0.1) == 0.0  # no reply for a while: measured afresh
 
 
-def test_shed_late_recovers_from_an_estimate_above_the_deadline():
-    """After a stall the estimate can exceed a model's whole deadline: every request is then shed, no
-    batch runs, and no new measurement could lower it. The estimate expires instead, and requests run."""
+def test_shed_late_never_sheds_for_an_estimate_no_request_could_beat():
+    """After a stall the estimate can exceed a model's whole deadline. Shedding every request would then
+    keep it there (no batch runs, nothing is measured): such an estimate sheds nothing, the requests run
+    and their measurements bring it back down."""
     q = ModelQueues(["a"], policy="esf", shed_late=True)
-    q.note_service("a", 0.200, now=0.0)  # one very slow batch; the deadline budget is 100 ms
-    q.put(req("a", "shed", 0.5, 0.6))
-    assert [r.id for r in q.take(2, now=0.5)[2]] == ["shed"]
-    from services.executor.scheduler import ServiceTimes
-    later = 0.0 + ServiceTimes.STALE_S + 0.5  # no reply since the slow batch
-    q.put(req("a", "runs", later, later + 0.1))
-    model, batch, shed = q.take(2, now=later)
+    q.note_service("a", 0.200, now=0.0)  # one very slow batch; the requests' whole budget is 100 ms
+    q.put(req("a", "runs", 0.5, 0.6))
+    model, batch, shed = q.take(2, now=0.5)
     assert model == "a" and [r.id for r in batch] == ["runs"] and shed == []
+    for _ in range(ServiceTimes.WINDOW):
+        q.note_service("a", 0.040, now=0.6)  # measured again: 40 ms
+    q.put(req("a", "hopeless", 0.55, 0.65))  # 20 ms left at 0.63, 40 ms needed: now it is shed
+    q.put(req("a", "fresh", 0.62, 0.72))
+    model, batch, shed = q.take(2, now=0.63)
+    assert [r.id for r in shed] == ["hopeless"] and [r.id for r in batch] == ["fresh"]
 
 
 def test_shed_late_drops_heads_that_cannot_finish_in_time():
@@ -167,7 +169,6 @@ def test_shed_late_drops_heads_that_cannot_finish_in_time():
 def test_engine_with_shed_late_answers_a_hopeless_request_deadline_exceeded_at_once(monkeypatch):
     """The real engine measures its own service time from the batches it answers, then refuses a
     request whose deadline is nearer than that, before it costs GPU time, with a message that says why."""
-    from services.executor.scheduler import ServiceTimes
     monkeypatch.setattr(ServiceTimes, "STALE_S", 60.0)  # a slow test machine must not age the measurements out
     model = build_model("toy", seed=1)
     results: list = []
@@ -200,7 +201,8 @@ def test_engine_with_shed_late_answers_a_hopeless_request_deadline_exceeded_at_o
     assert estimate > 0 and all(r.actions is not None for r in results)
     # One step on this thread right after the submit, so the request is still short of its deadline when taken.
     now = time.monotonic()
-    eng.submit(req("toy", "hopeless", now, now + estimate / 2))  # due before a batch can finish
+    # It waited (arrived an estimate ago) and is due before a batch can finish: could have made it, cannot now.
+    eng.submit(req("toy", "hopeless", now - estimate, now + estimate / 2))
     assert eng.step() and len(results) == 5
     last = results[-1]
     assert last.request.id == "hopeless" and last.actions is None

@@ -86,7 +86,7 @@ class Engine:
             self.on_results([Result(r, error=(ErrorCode.UNAVAILABLE, "executor is shutting down")) for r in pending])
 
     def _timed(self, sink: ResultSink) -> ResultSink:
-        """``sink`` that also tells the queues each answered batch's service time (``shed_late``)."""
+        """``sink`` that also tells the queues each answered request's service time (``shed_late``)."""
         def deliver(results: list[Result]) -> None:
             for r in results:
                 if r.actions is not None and r.admitted > 0:
@@ -96,12 +96,15 @@ class Engine:
 
     def _report_expired(self, expired: list[Request]) -> None:
         if expired:
-            now = time.monotonic()
-            self.on_results([Result(r, error=(ErrorCode.DEADLINE_EXCEEDED, "deadline passed while queued"
-                                              if r.deadline <= now else "deadline cannot be met: "
-                                              f"{(r.deadline - now) * 1e3:.1f} ms left, recent service time "
-                                              f"{self.queues.service_estimate(r.model) * 1e3:.1f} ms"))
-                             for r in expired])
+            self.on_results(self._expired_results(expired))
+
+    def _expired_results(self, expired: list[Request]) -> list[Result]:
+        """DEADLINE_EXCEEDED for requests the queues shed: late already, or too late to make it (shed_late)."""
+        now = time.monotonic()
+        return [Result(r, error=(ErrorCode.DEADLINE_EXCEEDED, "deadline passed while queued" if r.deadline <= now
+                                 else f"deadline cannot be met: {(r.deadline - now) * 1e3:.1f} ms left, recent "
+                                      f"service time {self.queues.service_estimate(r.model, now) * 1e3:.1f} ms"))
+                for r in expired]
 
 
 class MonolithicEngine(Engine):

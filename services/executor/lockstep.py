@@ -801,8 +801,7 @@ class LockstepEngine(Engine):
         # Through ``_emit``: a failing sink must not raise into ``_step`` between a lockstep's
         # launch and its end (that lockstep's batches would go unanswered).
         if expired:
-            self._emit([Result(r, error=(ErrorCode.DEADLINE_EXCEEDED, "deadline passed while queued"))
-                        for r in expired])
+            self._emit(self._expired_results(expired))
 
     def _emit(self, results: list[Result]) -> None:
         try:

@@ -119,6 +119,13 @@ class ServiceTimes:
         return self._estimate
 
 
+def _cannot_make_it(req: Request, now: float, service_s: float) -> bool:
+    """Its deadline is nearer than the recent service time, which is itself shorter than the request's
+    whole budget. An estimate that no request could beat (a slow burst measured it) sheds nothing: the
+    requests then run, are measured, and bring it back down; shedding them all would keep it there."""
+    return now + service_s >= req.deadline and service_s < req.deadline - req.arrival
+
+
 class ModelQueues:
     """One bounded FIFO per co-located model, shared by the I/O thread and the engine thread."""
 
@@ -186,8 +193,8 @@ class ModelQueues:
             if self._shed_expired:
                 for model, q in self._queues.items():
                     times = self._service.get(model)
-                    cutoff = now + (times.estimate(now) if times is not None else 0.0)
-                    while q and q[0].deadline <= cutoff:
+                    est = times.estimate(now) if times is not None else 0.0
+                    while q and (q[0].deadline <= now or _cannot_make_it(q[0], now, est)):
                         expired.append(q.popleft())
                 self._pending -= len(expired)
             if self._pending == 0:
