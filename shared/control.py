@@ -90,12 +90,10 @@ class RoutingTable:
         version = _int(d["version"], "version")
         models = {}
         for name, info in _str_map(d["models"], "models").items():
-            # ModelInfo.from_wire converts; what it raises on a wrong shape or value: a missing key, a
-            # non-map, int("x"), int(inf).
             try:
                 models[name] = ModelInfo.from_wire(info)
-            except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
-                raise TableError(f"malformed routing table: models[{name!r}]: {type(exc).__name__}: {exc}") from None
+            except ValueError as exc:
+                raise TableError(f"malformed routing table: models[{name!r}]: {exc}") from None
         routes = {m: _str_list(e, f"routes[{m!r}]") for m, e in _str_map(d["routes"], "routes").items()}
         quotas = {m: {e: _int(n, f"quotas[{m!r}][{e!r}]") for e, n in _str_map(q, f"quotas[{m!r}]").items()}
                   for m, q in _str_map(d.get("quotas", {}), "quotas").items()}

@@ -130,9 +130,17 @@ class ModelInfo:
 
     @classmethod
     def from_wire(cls, d: dict[str, Any]) -> "ModelInfo":
-        return cls(cameras=list(d["cameras"]), image_shape=list(d["image_shape"]), state_dim=int(d["state_dim"]),
-                   horizon=int(d["horizon"]), action_dim=int(d["action_dim"]), deadline_ms=float(d["deadline_ms"]),
-                   arch=str(d.get("arch", "")))
+        """Raises ValueError, naming what failed, for a description of the wrong shape or with a wrong value.
+
+        One error type for every caller (the SDK's decode, the control plane's register, the router's
+        routing table): the conversions below raise KeyError (a missing field), TypeError or
+        AttributeError (not a map), ValueError (int("x")) and OverflowError (int(inf))."""
+        try:
+            return cls(cameras=list(d["cameras"]), image_shape=list(d["image_shape"]), state_dim=int(d["state_dim"]),
+                       horizon=int(d["horizon"]), action_dim=int(d["action_dim"]),
+                       deadline_ms=float(d["deadline_ms"]), arch=str(d.get("arch", "")))
+        except (KeyError, TypeError, AttributeError, ValueError, OverflowError) as exc:
+            raise ValueError(f"{type(exc).__name__}: {exc}") from None
 
 
 @dataclass
@@ -353,7 +361,7 @@ def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Mes
         models = _field(header, "models", dict)
         try:
             infos = {name: ModelInfo.from_wire(info) for name, info in models.items()}
-        except (KeyError, TypeError, ValueError, OverflowError) as exc:  # OverflowError: int() of an infinite float
+        except ValueError as exc:
             raise ProtocolError(ErrorCode.BAD_REQUEST, f"models: malformed model description ({exc})") from None
         protocol = header.get("protocol", PROTOCOL_VERSION)
         if type(protocol) is not int:

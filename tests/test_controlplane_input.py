@@ -89,6 +89,7 @@ REGISTER = {"executor": "ex0", "device": "cpu", "models": {"toy-a": INFO}}
     ("register", {**REGISTER, "models": ["toy-a"]}, "models"),
     ("register", {**REGISTER, "models": {"toy-a": {"cameras": ["cam0"]}}}, "models"),
     ("register", {**REGISTER, "models": {"toy-a": {**INFO, "state_dim": "four"}}}, "models"),
+    ("register", {**REGISTER, "models": {"toy-a": {**INFO, "state_dim": float("inf")}}}, "models"),
     ("register", {**REGISTER, "limits": ["toy-a", 4]}, "limits"),
     ("table_get", {"role": "router", "version": "3"}, "version"),
     ("table_get", {"role": "router", "version": 2.5}, "version"),
@@ -98,7 +99,8 @@ REGISTER = {"executor": "ex0", "device": "cpu", "models": {"toy-a": INFO}}
     ("deregister", {}, "executor"),
     ("deregister", {"executor": ["ex0"]}, "executor"),
 ], ids=["register-no-executor", "register-executor-not-str", "register-no-models", "register-models-not-map",
-        "register-model-info-incomplete", "register-model-info-mistyped", "register-limits-not-map",
+        "register-model-info-incomplete", "register-model-info-mistyped", "register-model-info-infinite",
+        "register-limits-not-map",
         "table_get-version-str", "table_get-version-float", "table_get-version-null", "heartbeat-no-executor",
         "heartbeat-depths-not-map", "deregister-no-executor", "deregister-executor-not-str"])
 def test_malformed_control_message_is_answered_bad_request(plane, kind, fields, field):

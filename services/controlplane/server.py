@@ -190,9 +190,8 @@ class ControlPlane:
             for model, info in _mapping(msg, "models", required=True).items():
                 try:
                     models[str(model)] = ModelInfo.from_wire(info)
-                except (KeyError, TypeError, ValueError) as exc:
-                    raise BadRequest(f"models.{model}: malformed model description "
-                                     f"({type(exc).__name__}: {exc})") from None
+                except ValueError as exc:
+                    raise BadRequest(f"models.{model}: malformed model description ({exc})") from None
             # Each limit's value is checked by ClusterState.register: a bad one is ignored, not fatal.
             limits = {str(m): c for m, c in _mapping(msg, "limits").items()}
             instance = msg.get("instance", "")
