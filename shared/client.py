@@ -339,9 +339,11 @@ def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[Rob
         poller.register(c.socket, zmq.POLLIN)
         by_socket[c.socket] = c
 
+    # Nothing is sent or read until the poll below, so each client's next expiry holds throughout.
+    expiry = {c: c._next_expiry() for c in clients}
+
     def expired(c: RobotClient, now: float) -> bool:
-        expiry = c._next_expiry()
-        return expiry is not None and expiry <= now
+        return expiry[c] is not None and expiry[c] <= now
 
     # A client may hold outcomes that a blocking call of it read off the socket already: the socket
     # need not be readable for those, and they are ready now, so do not wait for anything else. Nor
@@ -349,9 +351,9 @@ def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[Rob
     now = time.monotonic()
     ready = [c for c in clients if c._done or expired(c, now)]
     wait_ms = max(0, int(timeout_s * 1000))
-    expiries = [e for e in (c._next_expiry() for c in clients) if e is not None and not math.isinf(e)]
-    if expiries:
-        wait_ms = min(wait_ms, max(0, math.ceil((min(expiries) - now) * 1000)))
+    soonest = min((e for e in expiry.values() if e is not None and not math.isinf(e)), default=None)
+    if soonest is not None:
+        wait_ms = min(wait_ms, max(0, math.ceil((soonest - now) * 1000)))
     events = poller.poll(0 if ready else wait_ms)
     readable = {by_socket[sock] for sock, _ in events}
     now = time.monotonic()
