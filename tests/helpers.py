@@ -1,4 +1,5 @@
-"""Shared test fixtures: free loopback ports, small cluster configs and a control plane in a thread."""
+"""Shared test fixtures: free loopback ports, small cluster configs, a control plane in a thread, and
+edited copies of wire messages."""
 
 from __future__ import annotations
 
@@ -7,6 +8,17 @@ import threading
 from pathlib import Path
 
 import yaml
+
+
+def changed(message: dict, changes: dict) -> dict:
+    """A copy of ``message`` with ``changes`` applied; a change of None removes the field."""
+    out = dict(message)
+    for key, value in changes.items():
+        if value is None:
+            out.pop(key)
+        else:
+            out[key] = value
+    return out
 
 
 def free_ports(n: int) -> list[int]:

@@ -22,6 +22,7 @@ import zmq
 from shared.client import MalformedReply, RequestTimeout, RobionError, RobotClient
 from shared.protocol import (ErrorCode, ErrorReply, InferReply, Metadata, ModelInfo, Pong, Timings, decode, encode,
                              pack_header)
+from tests.helpers import changed
 
 TIMEOUT_S = 10.0  # the SDK's default: every "at once" below is well under it
 PROMPT_S = 1.0
@@ -41,15 +42,9 @@ def good_reply(rid: Any) -> Frames:
 
 def reply_header(rid: Any, **changes: Any) -> dict[str, Any]:
     """A valid inline reply header for ``rid``; a change of None removes the field."""
-    header = {"v": 1, "kind": "reply", "id": rid, "model": "toy",
-              "actions": {"dtype": "float32", "shape": [2, 3], "data": ACTIONS.tobytes()},
-              "timings": {"queue_ms": 0.0, "server_ms": 1.0}}
-    for key, value in changes.items():
-        if value is None:
-            header.pop(key)
-        else:
-            header[key] = value
-    return header
+    return changed({"v": 1, "kind": "reply", "id": rid, "model": "toy",
+                    "actions": {"dtype": "float32", "shape": [2, 3], "data": ACTIONS.tobytes()},
+                    "timings": {"queue_ms": 0.0, "server_ms": 1.0}}, changes)
 
 
 def framed(rid: Any, actions: dict[str, Any], *frames: bytes) -> Frames:

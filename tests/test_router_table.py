@@ -20,6 +20,7 @@ from services.router.frontend import TABLE_POLL_S
 from shared import control
 from shared.control import RoutingTable, TableError
 from shared.protocol import Metadata, pack_header
+from tests.helpers import changed
 from tests.test_router_robustness import INFO, RouterThread, ask, one_executor_table
 
 GOOD = RoutingTable(version=2, models={"toy-a": INFO, "toy-b": INFO}, routes={"toy-a": ["ex0"], "toy-b": ["ex0"]},
@@ -70,13 +71,7 @@ WRONG_SHAPE = {
 
 def wrong(changes: dict) -> dict:
     """FULL's wire form with ``changes``; a change of None removes the field."""
-    d = FULL.to_wire()
-    for k, v in changes.items():
-        if v is None:
-            d.pop(k)
-        else:
-            d[k] = v
-    return d
+    return changed(FULL.to_wire(), changes)
 
 
 class ControlPlane:
