@@ -27,7 +27,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspa
 from shared.models import build_model, groot_n15  # noqa: E402
 
 from norm_fold_ab import kernels_in  # noqa: E402  (this folder)
-from timing import alternating_ms, capture_checked, env_settings, pct, result_header, save_result  # noqa: E402,E501
+from timing import (alternating_ms, capture_checked, env_settings, pct, result_header, save_result,  # noqa: E402
+                    seeded_inputs)
 
 
 def run(batches: list[int], iters: int) -> dict:
@@ -36,9 +37,7 @@ def run(batches: list[int], iters: int) -> dict:
     workspace = groot_n15.Workspace
     out = {}
     for b in batches:
-        gen = torch.Generator().manual_seed(1234 + b)
-        images, state, tokens = model.example_inputs(b, device=dev, generator=gen)
-        noise = model.noise(b, device=dev, generator=gen).to(torch.bfloat16)
+        images, state, tokens, noise = seeded_inputs(model, b, dev)
         graphs, outs, counts = {}, {}, {}
         pool = torch.cuda.graph_pool_handle()
         with torch.inference_mode():

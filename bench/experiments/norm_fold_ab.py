@@ -27,7 +27,8 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from shared.models import build_model, fused, layers  # noqa: E402
 
-from timing import alternating_ms, capture_checked, env_settings, pct, result_header, save_result  # noqa: E402,E501
+from timing import (alternating_ms, capture_checked, env_settings, pct, result_header, save_result,  # noqa: E402
+                    seeded_inputs)
 
 
 def kernels_in(graph_body) -> int:
@@ -50,10 +51,7 @@ def run_model(arch: str, batches: list[int], iters: int) -> dict:
                 mod.weight.copy_((1 + 0.3 * torch.randn(mod.weight.shape, generator=g)).to(mod.weight.dtype))
     out = {}
     for b in batches:
-        gen = torch.Generator().manual_seed(1234 + b)
-        images, state, tokens = model.example_inputs(b, device=dev, generator=gen)
-        tokens[:, model.io.prompt_len // 2:] = 0
-        noise = model.noise(b, device=dev, generator=gen).to(torch.bfloat16)
+        images, state, tokens, noise = seeded_inputs(model, b, dev, half_prompt=True)
         graphs, outs, counts = {}, {}, {}
         pool = torch.cuda.graph_pool_handle()
         with torch.inference_mode():

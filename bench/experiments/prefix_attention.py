@@ -26,7 +26,8 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from shared.models import build_model, fused, layers  # noqa: E402
 
-from timing import alternating_ms, capture_checked, env_settings, pct, result_header, save_result  # noqa: E402,E501
+from timing import (alternating_ms, capture_checked, env_settings, pct, result_header, save_result,  # noqa: E402
+                    seeded_inputs)
 
 
 def set_gemm(on: bool, max_heads: int = 64) -> None:
@@ -78,9 +79,7 @@ def run_model(arch: str, batches: list[int], iters: int) -> dict:
     model = build_model(arch, "full", device=dev, seed=0)
     out = {}
     for b in batches:
-        gen = torch.Generator().manual_seed(1234 + b)
-        images, state, tokens = model.example_inputs(b, device=dev, generator=gen)
-        tokens[:, model.io.prompt_len // 2:] = 0
+        images, state, tokens, _ = seeded_inputs(model, b, dev, half_prompt=True)
         graphs, outs = {}, {}
         pool = torch.cuda.graph_pool_handle()
         with torch.inference_mode():

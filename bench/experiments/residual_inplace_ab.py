@@ -26,7 +26,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspa
 from shared.models import build_model, fused, layers, smolvla  # noqa: E402
 from shared.models.fused import addmm_residual, linear_residual_splitk  # noqa: E402
 
-from timing import alternating_ms, capture_checked, env_settings, pct, result_header, save_result  # noqa: E402
+from timing import (alternating_ms, capture_checked, env_settings, pct, result_header, save_result,  # noqa: E402
+                    seeded_inputs)
 
 INPLACE = layers.linear_residual
 
@@ -71,9 +72,7 @@ def run_model(arch: str, batches: list[int], iters: int) -> dict:
     model = build_model(arch, "full", device=dev, seed=0)
     out = {}
     for b in batches:
-        gen = torch.Generator().manual_seed(1234 + b)
-        images, state, tokens = model.example_inputs(b, device=dev, generator=gen)
-        noise = model.noise(b, device=dev, generator=gen).to(torch.bfloat16)
+        images, state, tokens, noise = seeded_inputs(model, b, dev)
         row: dict = {}
         with torch.inference_mode():
             for stage in ("vlm", "action"):

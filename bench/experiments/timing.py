@@ -52,6 +52,16 @@ def capture_checked(body, pool, warmup: int = 2) -> tuple:
     return graph, float_copy(eager), float_copy(out)
 
 
+def seeded_inputs(model, batch: int, device: torch.device, half_prompt: bool = False) -> tuple:
+    """The experiments' inputs at ``batch``: (images, state, tokens, bf16 noise), drawn in that order from a
+    generator seeded with 1234 + batch; ``half_prompt`` pads the second half of each prompt (token 0)."""
+    gen = torch.Generator().manual_seed(1234 + batch)
+    images, state, tokens = model.example_inputs(batch, device=device, generator=gen)
+    if half_prompt:
+        tokens[:, model.io.prompt_len // 2:] = 0
+    return images, state, tokens, model.noise(batch, device=device, generator=gen).to(torch.bfloat16)
+
+
 def replay_pair_ms(first: torch.cuda.CUDAGraph, second: torch.cuda.CUDAGraph, reps: int,
                    warmup: int = 5) -> tuple[list[float], list[float], list[float]]:
     """``reps`` back-to-back replays of two graphs on the current stream (a VLM graph, then the
