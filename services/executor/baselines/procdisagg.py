@@ -711,8 +711,7 @@ class ProcDisaggEngine(Engine):
 def _config_fields() -> list[str]:  # for docs/tests: the knobs this engine reads
     return [f.name for f in dataclasses.fields(EngineConfig) if f.name in
             ("max_batch", "policy", "max_queue", "shed_expired", "shed_late", "seed", "graphs", "running_batch",
-             "handoff_slots",
-             "procdisagg_workers")]
+             "handoff_slots", "procdisagg_workers")]
 
 
 _ = std_mp  # multiprocessing is used through torch.multiprocessing's spawn context
