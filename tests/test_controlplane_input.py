@@ -159,3 +159,29 @@ def test_invalid_measured_limits_are_ignored_and_valid_ones_kept(plane, bad):
     assert table["limits"] == {"toy-a": 4, "toy-b": 4}
     assert {m: sum(q.values()) for m, q in table["quotas"].items()} == population, table["quotas"]
     assert t.is_alive()
+
+
+# ----------------------------------------------------------------- D: apply's config field
+
+
+@pytest.mark.parametrize("fields", [{}, {"config": None}, {"config": 7}, {"config": {"models": []}}],
+                         ids=["missing", "null", "int", "map"])
+def test_apply_without_a_config_text_is_answered_bad_request(plane, fields):
+    """A missing or mistyped `config` was turned into text by str() and parsed as YAML ("None", "7"):
+    answered BAD_CONFIG `config: expected a mapping`, as if the operator's file were wrong."""
+    address, _, _, t = plane
+    before = control_status(address, WAIT_S)["table"]["version"]
+    assert_bad_request(request(address, "apply", **fields), "config")
+    status = control_status(address, WAIT_S)
+    assert status["table"]["version"] == before and status["rollout"] is None
+    assert t.is_alive()
+
+
+def test_apply_of_deeply_nested_yaml_is_answered_bad_config(plane):
+    """PyYAML builds nested collections recursively: a file of 20000 '[' raised RecursionError, which was
+    answered INTERNAL ("see the control plane's log") instead of naming the file as the problem."""
+    address, _, _, t = plane
+    reply = request(address, "apply", config="[" * 20000)
+    assert reply is not None and reply["kind"] == "error" and reply["code"] == "BAD_CONFIG", reply
+    assert "YAML" in reply["message"], reply
+    assert control_status(address, WAIT_S)["rollout"] is None and t.is_alive()

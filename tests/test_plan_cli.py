@@ -146,3 +146,30 @@ def test_problem_from_mapping_defaults_to_all_gpus() -> None:
     p = problem_from_mapping({"gpus": 3, "models": {"A": {"limit": 4, "robots": 6}, "B": {"limit": 2, "robots": 0, "gpus": [1]}}})
     assert p.num_gpus == 3
     assert [(m.name, m.limit, m.robots, m.gpus) for m in p.models] == [("A", 4, 6, (0, 1, 2)), ("B", 2, 0, (1,))]
+
+
+def test_cluster_config_with_placement_shorthand(tmp_path: Path) -> None:
+    """A cluster config written with `gpus: N` + `placement:` (docs/operations.md) has no `executors`
+    key until it is expanded; it was read as a planning file and refused (`placement: unknown key`)."""
+    cluster = """\
+models:
+  - {name: A, arch: toy, robots: 6, limit: 4}
+  - {name: B, arch: toy, robots: 2, limit: 4}
+gpus: 2
+placement: mix
+"""
+    out = run_plan(tmp_path, cluster, "--json")
+    assert out.returncode == 0, out.stderr
+    data = json.loads(out.stdout)
+    assert data["objective"] == 4 and data["feasible"] is True  # the paper example on gpu0, gpu1
+    assert {m: sum(row.values()) for m, row in data["assignment"].items()} == {"A": 6, "B": 2}
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan"])
+def test_time_limit_that_is_not_positive_exit_2(tmp_path: Path, value: str) -> None:
+    """A negative or NaN limit made CP-SAT refuse its own parameters (MODEL_INVALID); that was reported as
+    'no feasible assignment ... raise the time limit', exit 1, as if the planning file were the problem."""
+    out = run_plan(tmp_path, PAPER, "--time-limit", value)
+    assert out.returncode == 2, (out.returncode, out.stdout, out.stderr)
+    assert "--time-limit" in out.stderr and "positive" in out.stderr, out.stderr
+    assert "Traceback" not in out.stderr

@@ -101,7 +101,10 @@ def test_an_executor_that_restarts_during_its_change_is_sent_the_load_again():
     st.router_version = st.table.version
     tick(2.0)
     assert loads == ["ex0"]
-    # The same process re-registering its old set (a heartbeat hiccup): keep waiting, no second load.
+    # The same process re-registering its old set after it lost the control plane (it missed its
+    # heartbeats and was told to register again): keep waiting, no second load.
+    st.deregister("ex0")
+    tick(2.5)
     st.register("ex0", "cpu", {"a": _info()}, now=3.0, instance="ex0-1")
     ro.on_register(st, "ex0", ["a"])
     st.router_version = st.table.version
@@ -122,3 +125,57 @@ def test_an_executor_that_restarts_during_its_change_is_sent_the_load_again():
     assert loads == ["ex0", "ex0"] and ro.failed == [] and ro.current.executor == "ex0"
     ro.on_register(st, "ex0", ["a", "b"])  # it comes back with the new set: the step is done
     assert ro.finished and ro.done_steps == ["ex0"] and not st.executors["ex0"].draining
+
+
+def test_an_executor_whose_reload_fails_is_resumed_when_it_registers_its_previous_models():
+    """The executor keeps its previous models when the new ones cannot be loaded and registers them
+    again: the step fails then, not after its timeout, and the executor is routed again."""
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _state_with(["ex0", "ex1"])
+    loads = []
+    ro = Rollout([Step("ex0", [c.model("a"), c.model("b")]), Step("ex1", [c.model("b")])], timeout_s=600, gone_s=30)
+    ro.tick(st, lambda ex, models: loads.append(ex), now=1.0)
+    st.router_version = st.table.version
+    ro.tick(st, lambda ex, models: loads.append(ex), now=2.0)
+    assert loads == ["ex0"] and st.executors["ex0"].draining
+    st.register("ex0", "cpu", {"a": _info()}, now=3.0, instance="ex0-1")  # registered throughout
+    ro.on_register(st, "ex0", ["a"])
+    assert ro.failed == ["ex0"] and ro.current.executor == "ex1"
+    assert not st.executors["ex0"].draining and st.table.routes["a"] == ["ex0", "ex1"]
+
+
+def test_an_executor_back_from_an_absence_during_its_change_stays_out_of_routing():
+    """An executor that missed its heartbeats is off the registry; when it registers again it is a new
+    entry, not draining. Its step kept waiting with the executor routed again: before the load went out,
+    the load was then sent while the router still sent it requests (answered UNAVAILABLE while it
+    reloads); after, it was routed for the whole reload."""
+    from services.controlplane.rollout import Rollout, Step
+
+    for loaded in (False, True):
+        c, st = _state_with(["ex0", "ex1"])
+        loads = []
+        ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
+
+        def tick(now):
+            ro.tick(st, lambda ex, models: loads.append(ex), now=now)
+
+        tick(1.0)
+        if loaded:
+            st.router_version = st.table.version
+            tick(2.0)
+            assert loads == ["ex0"]
+        st.expire(now=st.executors["ex1"].last_seen + st.timeout_s + 1)  # both missed their heartbeats
+        tick(3.0)
+        st.register("ex1", "cpu", {"a": _info()}, instance="ex1-1")
+        st.register("ex0", "cpu", {"a": _info()}, instance="ex0-1")  # the same process, told to reregister
+        ro.on_register(st, "ex0", ["a"])
+        st.router_version = st.table.version - 1  # the router has not fetched the table of that yet
+        tick(4.0)
+        assert st.executors["ex0"].draining and st.table.routes["a"] == ["ex1"], loaded
+        assert loads == (["ex0"] if loaded else []), loaded  # no load while the router may still route to it
+        st.router_version = st.table.version
+        tick(5.0)
+        assert loads == ["ex0"] and not ro.failed  # sent once the router routes around it
+        ro.on_register(st, "ex0", ["a", "b"])
+        assert ro.finished and not st.executors["ex0"].draining

@@ -238,3 +238,21 @@ def test_headroom_outside_unit_interval_is_refused(headroom: float) -> None:
     with pytest.raises(PlanInputError) as e:
         with_headroom(paper_problem(), headroom)
     assert e.value.path == "headroom"
+
+
+@pytest.mark.parametrize("gpus, limit, robots", [(8, 2**60, 2**62), (40, 2**58, 2**62), (1, 2**64, 2**64),
+                                                 (2, 2**64, 2**65)],
+                         ids=["sum-overflows-int64", "many-gpus", "domain-past-int64", "domain-past-int64-split"])
+def test_inputs_cp_sat_cannot_state_are_refused_with_a_reason(gpus: int, limit: int, robots: int) -> None:
+    """Populations and limits whose sums (or bounds) pass int64 made CP-SAT answer MODEL_INVALID, reported
+    as a time-out ('raise the time limit'), or made OR-Tools raise a TypeError. They are a PlanInputError,
+    which the control plane answers with the even split (traffic.assign)."""
+    p = make_problem(gpus, [("a", limit, robots, None)])
+    with pytest.raises(PlanInputError, match="int64"):
+        solve(p, time_limit_s=5)
+
+
+@pytest.mark.parametrize("time_limit_s", [-1.0, 0.0, float("nan")])
+def test_time_limit_must_be_positive(time_limit_s: float) -> None:
+    with pytest.raises(PlanInputError, match="time_limit_s"):
+        solve(paper_problem(), time_limit_s=time_limit_s)

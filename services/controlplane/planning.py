@@ -121,7 +121,9 @@ def load_planning_file(path: str | Path, headroom: float | None = None) -> PlanP
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise PlanInputError("", f"not valid YAML: {e}") from None
-    if isinstance(data, dict) and "executors" in data:
+    # A cluster config written with the placement shorthand (`gpus: N` + `placement:`) has no
+    # `executors` key until it is expanded; a planning file never has `placement`.
+    if isinstance(data, dict) and ("executors" in data or "placement" in data):
         try:
             cfg = config_from_dict(data)
             return with_headroom(problem_from_cluster(cfg), cfg.control.headroom if headroom is None else headroom)
@@ -159,6 +161,17 @@ def _summary(result: PlanResult) -> str:
     return ", ".join(parts)
 
 
+def _time_limit(text: str) -> float:
+    """--time-limit: seconds, positive (CP-SAT answers MODEL_INVALID to a negative or NaN limit)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return value
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="robion plan",
@@ -168,7 +181,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                  "(executors are the GPUs; models need robots and limit)")
     ap.add_argument("--strategy", choices=STRATEGIES, default="ip", help="ip (integer program, default), smg, eps")
     ap.add_argument("--json", action="store_true", help='print {"assignment", "objective", "feasible"} as JSON')
-    ap.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT_S, help="solver time limit in seconds (ip)")
+    ap.add_argument("--time-limit", type=_time_limit, default=DEFAULT_TIME_LIMIT_S, help="solver time limit in seconds (ip)")
     ap.add_argument("--headroom", type=float, help="plan with floor(limit x H) robots per GPU, 0 < H <= 1 "
                                                    "(default: a cluster config's control.headroom, else 1)")
     args = ap.parse_args(argv)

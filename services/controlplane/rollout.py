@@ -29,6 +29,10 @@ class Step:
     drained_version: int = 0  # the table version without this executor's routes
     loading: bool = False
     instance: str = ""  # the executor process the load was sent to
+    # Whether the executor has been off the registry since the step started. Only such an executor is
+    # told to register again (reregister), so a re-registration of its old models from the same process
+    # while it stayed registered means its reload ended: it failed and it kept its previous models.
+    absent: bool = False
 
 
 # Settings `apply` changes live: the models (placement, populations, rates, limits, weights),
@@ -37,6 +41,13 @@ class Step:
 # what runs.
 LIVE_CONTROL_FIELDS = frozenset({"strategy", "solve_time_limit_s", "headroom"})
 LIVE_EXECUTOR_FIELDS = frozenset({"name", "models", "memory_gb"})  # memory_gb: checked at apply
+# Model settings only the traffic controller reads (executors never use a population), so a change of
+# them re-solves the quotas without reloading the executors hosting the model.
+TRAFFIC_ONLY_MODEL_FIELDS = frozenset({"robots"})
+
+
+def _executor_settings(model: ModelConfig) -> dict[str, Any]:
+    return {k: v for k, v in asdict(model).items() if k not in TRAFFIC_ONLY_MODEL_FIELDS}
 
 
 def _differences(prefix: str, a: Any, b: Any, out: list[str]) -> None:
@@ -78,7 +89,7 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
 
         def changed(model: str) -> bool:
             try:
-                return asdict(old.model(model)) != asdict(new.model(model))
+                return _executor_settings(old.model(model)) != _executor_settings(new.model(model))
             except KeyError:
                 return True
 
@@ -130,7 +141,9 @@ class Rollout:
             return
         if step.executor in state.executors:
             self._gone_since = None
-        elif self._gone(now) > self.gone_s:
+        else:
+            step.absent = True
+        if step.executor not in state.executors and self._gone(now) > self.gone_s:
             log.error("executor %s left during its placement change (off the registry for %.0f s); skipping it",
                       step.executor, self._gone(now))
             self._skip(step)
@@ -161,22 +174,41 @@ class Rollout:
 
     def on_register(self, state: ClusterState, executor: str, models: list[str]) -> None:
         step = self.current
-        if step is None or step.executor != executor or not step.loading:
+        if step is None or step.executor != executor or not step.started:
             return
-        if sorted(models) != sorted(m.name for m in step.models):
-            ex = state.executors.get(executor)
-            if ex is not None and step.instance and ex.instance != step.instance:
-                # A new process with its old model set: the executor restarted and never got (or
-                # lost) the load. Drain it again and send the load again, as at the step's start.
-                log.warning("executor %s restarted during its placement change; loading %s again", executor,
-                            [m.name for m in step.models])
-                step.loading = False
-                _drain(state, step)
-            return  # the same process re-registering its old set (e.g. a heartbeat hiccup): keep waiting
-        state.set_draining(executor, False)
-        log.info("placement change: %s serves %s again (table v%d)", executor, sorted(models), state.table.version)
-        self.done_steps.append(executor)
-        self.pending.pop(0)
+        ex = state.executors.get(executor)
+        if step.loading and sorted(models) == sorted(m.name for m in step.models):
+            state.set_draining(executor, False)
+            log.info("placement change: %s serves %s again (table v%d)", executor, sorted(models),
+                     state.table.version)
+            self.done_steps.append(executor)
+            self.pending.pop(0)
+            return
+        if step.loading and ex is not None and step.instance and ex.instance != step.instance:
+            # A new process with its old model set: the executor restarted and never got (or
+            # lost) the load. Drain it again and send the load again, as at the step's start.
+            log.warning("executor %s restarted during its placement change; loading %s again", executor,
+                        [m.name for m in step.models])
+            step.loading = False
+            step.absent = False  # the new process has registered; its own absences count from here
+            _drain(state, step)
+            return
+        if step.loading and ex is not None and not step.absent:
+            # The same process, registered throughout, registers again only when its reload has
+            # ended: it could not load the new set and serves its previous models again. Waiting
+            # for the step's timeout would keep it out of routing (and every `apply` BUSY) meanwhile.
+            log.error("executor %s could not load %s and serves %s again; resuming it, its placement change "
+                      "failed (see its log)", executor, [m.name for m in step.models], sorted(models))
+            state.set_draining(executor, False)
+            self._skip(step)
+            return
+        if ex is not None and not ex.draining:
+            # Back after it was off the registry (missed heartbeats): its new registry entry is routed.
+            # It stays drained for its whole step, and a load not yet sent waits until the router
+            # routes by this drained table again.
+            log.warning("executor %s registered again during its placement change; draining it again", executor)
+            _drain(state, step)
+        # Otherwise the same process re-registering after it lost the control plane: keep waiting.
 
     def status(self) -> dict:
         return {"pending": [s.executor for s in self.pending], "done": self.done_steps, "failed": self.failed,

@@ -140,11 +140,15 @@ class ControlPlane:
             if self.rollout is not None and not self.rollout.finished:
                 return self._error(peer, ControlError.BUSY,
                                    f"a placement change is in progress: {self.rollout.status()}")
+            text = msg.get("config")
+            if not isinstance(text, str):
+                # str() of anything else would be parsed as YAML and blamed on the operator's file.
+                raise BadRequest(f"config: expected the config file's text (a string), got {_kind_of(text)}")
             try:
-                new = config_from_dict(yaml.safe_load(str(msg.get("config", ""))))
+                new = config_from_dict(yaml.safe_load(text))
             except ConfigError as exc:
                 return self._error(peer, ControlError.BAD_CONFIG, f"config error: {exc}")
-            except yaml.YAMLError:
+            except (yaml.YAMLError, RecursionError):  # PyYAML composes nested collections recursively
                 return self._error(peer, ControlError.BAD_CONFIG, "config error: not valid YAML")
             fixed = restart_only_changes(st.cfg, new)
             if fixed:

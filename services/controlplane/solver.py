@@ -469,6 +469,10 @@ def solve_ip(
 ) -> PlanResult:
     """Solve (1)-(3) with CP-SAT. ``optimal`` tells whether the objective was proven minimal."""
     start = time.perf_counter()
+    # CP-SAT does not refuse a negative or NaN time limit up front: it answers MODEL_INVALID,
+    # which would read as "no assignment found in time".
+    if not time_limit_s > 0:
+        raise PlanInputError("time_limit_s", f"expected a positive number of seconds, got {time_limit_s!r}")
     diag = diagnose_capacity(problem)
     if diag is not None:
         return PlanResult("ip", {}, None, False, False, "infeasible", time.perf_counter() - start, diag)
@@ -481,8 +485,17 @@ def solve_ip(
             continue
         # r_ij <= C_i is implied by (2); stating it keeps domains small and the scaled
         # capacity coefficients times bounds within int64.
+        ub = min(m.robots, m.limit)
+        # Constraint (1) sums one such variable per host: past int64 OR-Tools raises a TypeError
+        # (a bound itself too large) or CP-SAT refuses the model as MODEL_INVALID.
+        if ub * len(m.gpus) > _MAX_SCALED_ACTIVITY:
+            raise PlanInputError(
+                f"models.{m.name}",
+                f"{m.robots} robots with limit {m.limit} on {len(m.gpus)} GPUs are too large for the integer "
+                "program (its sums would overflow int64)",
+            )
         for j in m.gpus:
-            r[i, j] = mdl.new_int_var(0, min(m.robots, m.limit), f"r_{i}_{j}")
+            r[i, j] = mdl.new_int_var(0, ub, f"r_{i}_{j}")
         mdl.add(sum(r[i, j] for j in m.gpus) == m.robots)
 
     twice_obj: list = []
@@ -580,6 +593,9 @@ def solve_ip(
         if not res.feasible:  # would be a formulation bug; never hand out an overload silently
             raise AssertionError(f"CP-SAT returned an overloaded assignment: {res.diagnosis}")
         return res
+    if status == cp_model.MODEL_INVALID:
+        # A formulation the checks above did not foresee; not a time-out, so say what CP-SAT refused.
+        raise PlanInputError("models", f"CP-SAT refused the integer program (int64 bounds?): {mdl.validate()}")
     if status == cp_model.INFEASIBLE:
         return PlanResult("ip", {}, None, False, False, "infeasible", time.perf_counter() - start, _fragmentation_message(problem))
     msg = (

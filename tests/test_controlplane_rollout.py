@@ -1,0 +1,72 @@
+"""Rollouts (`robion ctl apply`) on a real cluster: what happens to an executor whose reload fails,
+and which changes need no reload at all."""
+
+import time
+
+import yaml
+
+from shared.cluster import LocalCluster, control_request, control_status
+from shared.config import load_config
+from tests.helpers import cluster_config
+
+
+def wait_for(predicate, timeout_s: float, poll_s: float = 0.2):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll_s)
+    return None
+
+
+def test_an_executor_that_cannot_load_its_new_models_is_put_back_at_once(tmp_path):
+    """ex1 is told to add a model whose weights file is missing: it keeps serving its previous models and
+    registers them again. The control plane left it drained (serving nothing) until the step's 600 s
+    timeout, with every further `apply` refused BUSY; now the step fails as soon as it registers."""
+    path, data = cluster_config(tmp_path)  # ex0: toy-a, toy-b; ex1: toy-a
+    cfg = load_config(path)
+    new = yaml.safe_load(path.read_text())
+    new["models"].append({"name": "toy-c", "arch": "toy", "size": "tiny", "seed": 2, "slo_ms": 500,
+                          "weights": str(tmp_path / "missing.safetensors")})
+    new["executors"][1]["models"] = ["toy-a", "toy-c"]
+    with LocalCluster(cfg, path, log_level="WARNING"):
+        reply = control_request(cfg.control.bind, "apply", timeout_s=30, config=yaml.safe_dump(new))
+        assert reply is not None and reply["kind"] == "applied" and reply["steps"] == ["ex1"], reply
+
+        def finished():
+            status = control_status(cfg.control.bind, 5)
+            rollout = status and status["rollout"]
+            return status if rollout and not rollout["pending"] else None
+
+        status = wait_for(finished, 60)
+        assert status is not None, control_status(cfg.control.bind, 5)
+        assert status["rollout"]["failed"] == ["ex1"] and status["rollout"]["done"] == []
+        assert status["executors"]["ex1"]["models"] == ["toy-a"]
+        assert not status["executors"]["ex1"]["draining"]
+        assert status["table"]["routes"]["toy-a"] == ["ex0", "ex1"]
+
+
+def test_a_population_change_reloads_no_executor(tmp_path):
+    """`robots` is read by the traffic controller only; a change of it re-solves the quotas. It used to
+    drain and reload every executor hosting the model in turn (engines rebuilt, minutes on a GPU)."""
+    path, data = cluster_config(tmp_path)
+    for m, robots in zip(data["models"], (4, 2)):
+        m.update(robots=robots, limit=4)
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_config(path)
+    new = yaml.safe_load(path.read_text())
+    new["models"][0]["robots"] = 6
+    with LocalCluster(cfg, path, log_level="WARNING"):
+        before = control_status(cfg.control.bind, 5)
+        assert {m: sum(q.values()) for m, q in before["table"]["quotas"].items()} == {"toy-a": 4, "toy-b": 2}
+        reply = control_request(cfg.control.bind, "apply", timeout_s=30, config=yaml.safe_dump(new))
+        assert reply is not None and reply["kind"] == "applied", reply
+        assert reply["steps"] == []
+        status = control_status(cfg.control.bind, 5)
+        assert status["rollout"]["pending"] == [] and not any(e["draining"] for e in status["executors"].values())
+        assert {m: sum(q.values()) for m, q in status["table"]["quotas"].items()} == {"toy-a": 6, "toy-b": 2}
+        # A change the executors do need (the deadline they schedule by) still reloads the hosts.
+        new["models"][1]["slo_ms"] = 400
+        reply = control_request(cfg.control.bind, "apply", timeout_s=30, config=yaml.safe_dump(new))
+        assert reply is not None and reply["kind"] == "applied" and reply["steps"] == ["ex0"], reply
