@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from shared.config import dial_address, positive_number
-from shared.service import load_or_exit
+from shared.service import load_or_exit, log_level
 
 DEFAULT_DEMO = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
 
@@ -46,6 +46,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
     # Ctrl-C during start-up must still stop what was started.
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
+    rc = 0
     try:
         t0 = time.monotonic()
         status = cluster.start(timeout_s=args.timeout)
@@ -55,10 +56,13 @@ def cmd_up(args: argparse.Namespace) -> int:
         _wait_for_signal()
     except KeyboardInterrupt:
         pass
+    except (RuntimeError, TimeoutError) as exc:  # LocalCluster.start: a service exited, or not ready in time
+        print(f"robion up: {exc}", file=sys.stderr, flush=True)
+        rc = 1
     finally:
         codes = cluster.stop()
         print(f"robion stopped: {codes}", flush=True)
-    return 0
+    return rc
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -76,6 +80,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if args.json:
             cmd += ["--json", args.json]
         rc = subprocess.call(cmd)
+    except (RuntimeError, TimeoutError) as exc:  # LocalCluster.start: a service exited, or not ready in time
+        print(f"robion demo: {exc}", file=sys.stderr, flush=True)
+        rc = 1
     finally:
         cluster.stop()
     return rc
@@ -135,6 +142,9 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         except OSError as exc:
             print(f"robion ctl apply: cannot read {args.target}: {exc.strerror}", file=sys.stderr)
             return 2
+        except UnicodeDecodeError:  # a binary file named by mistake: not a config
+            print(f"robion ctl apply: cannot read {args.target}: not a UTF-8 text file", file=sys.stderr)
+            return 2
         reply = control_request(address, "apply", timeout_s=30.0, config=text)
     else:
         reply = control_request(address, args.action, timeout_s=5.0, executor=args.target)
@@ -165,7 +175,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="robion", description="Serve VLA models to fleets of robots.")
-    p.add_argument("--log-level", default=os.environ.get("ROBION_LOG_LEVEL", "WARNING"))
+    p.add_argument("--log-level", type=log_level, default=os.environ.get("ROBION_LOG_LEVEL", "WARNING"))
     sub = p.add_subparsers(dest="cmd", required=True)
 
     up = sub.add_parser("up", help="start router, control plane and executors as local processes")

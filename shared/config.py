@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -35,8 +36,33 @@ def _power_of_two(v: Any) -> bool:
     return v >= 1 and v & (v - 1) == 0
 
 
+def _port(v: Any) -> bool:
+    """A TCP port, or 0 (disabled): above 65535 the socket's bind raises OverflowError in the service."""
+    return 0 <= v <= 65535
+
+
+def _seed(v: Any) -> bool:
+    """What every seed is handed to: torch's manual_seed (overflows above 2**64) and numpy's default_rng
+    (refuses negatives). Checked here, so the error names the key instead of crashing a process later."""
+    return 0 <= v < 2 ** 63
+
+
+_ADDRESS_RE = re.compile(r"(tcp://(\*|\[[0-9A-Fa-f:.]+\]|[^:/\[\]\s]+):(\d+)|ipc://\S+|inproc://\S+)")
+
+
+def valid_address(v: Any) -> bool:
+    """A ZeroMQ endpoint the services can bind or dial: tcp://HOST:PORT (HOST may be * in a bind),
+    ipc://PATH or inproc://NAME. zmq refuses anything else with a bare "Invalid argument" at start-up."""
+    m = _ADDRESS_RE.fullmatch(v)
+    return bool(m) and (m.group(3) is None or 1 <= int(m.group(3)) <= 65535)
+
+
 def _check(pred, text: str) -> dict[str, Any]:
     return {"check": (pred, text)}
+
+
+_ADDRESS = _check(valid_address, "expected an address like tcp://HOST:PORT, ipc://PATH or inproc://NAME")
+_SEED = _check(_seed, "expected a non-negative integer below 2**63")
 
 
 @dataclass
@@ -44,7 +70,8 @@ class ModelConfig:
     name: str
     arch: str
     size: str = "tiny"  # "tiny" for CPU demos and tests, "full" for the published dimensions
-    seed: int = 0  # seeded random weights; another seed is another fine-tuned variant
+    # seeded random weights; another seed is another fine-tuned variant
+    seed: int = field(default=0, metadata=_SEED)
     weights: str | None = None  # safetensors file of the model's own state dict
     tokenizer: str | None = None  # tokenizer file; a byte-level tokenizer when absent
     slo_ms: float = field(default=156.0, metadata=_check(positive_number, "expected a positive number"))
@@ -62,7 +89,7 @@ class ExecutorConfig:
     device: str = "cpu"  # "cpu" or "cuda:N"
     memory_gb: float | None = field(default=None, metadata=_check(positive_number, "expected a positive number"))
     # device memory to plan with; checked against the models' estimated needs (see shared/placement.py)
-    metrics_port: int | None = field(default=None, metadata=_check(_non_negative, "expected a port number (0 disables)"))
+    metrics_port: int | None = field(default=None, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
     # None: 9110 + the executor's position in this list
 
     def metrics_port_or_default(self, index: int) -> int:
@@ -78,7 +105,7 @@ class EngineConfig:
     shed_expired: bool = True  # answer DEADLINE_EXCEEDED instead of running requests already late
     # also those whose deadline is nearer than their model's recent service time (p90): overload control
     shed_late: bool = False
-    seed: int = 0  # noise generator seed
+    seed: int = field(default=0, metadata=_SEED)  # noise generator seed
     # Lockstep engines (robion and its comparison engines):
     sm_policy: str = "table"  # VLM SM restriction: table (profiled per stage pair), none, static
     static_sms: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))
@@ -104,13 +131,14 @@ class EngineConfig:
 
 @dataclass
 class RouterConfig:
-    bind: str = "tcp://127.0.0.1:5555"  # robots connect here (DEALER)
-    backend: str = "tcp://127.0.0.1:5556"  # executors connect here (DEALER)
-    backend_connect: str | None = None  # address executors dial when it differs from the bind (containers)
+    bind: str = field(default="tcp://127.0.0.1:5555", metadata=_ADDRESS)  # robots connect here (DEALER)
+    backend: str = field(default="tcp://127.0.0.1:5556", metadata=_ADDRESS)  # executors connect here (DEALER)
+    backend_connect: str | None = field(default=None, metadata=_ADDRESS)
+    # address executors dial when it differs from the bind (containers)
     max_message_bytes: int = field(default=16 * 1024 * 1024,
                                    metadata=_check(positive_number, "expected a positive integer"))
     request_timeout_s: float = field(default=30.0, metadata=_check(positive_number, "expected a positive number"))
-    metrics_port: int = field(default=9100, metadata=_check(_non_negative, "expected a port number (0 disables)"))
+    metrics_port: int = field(default=9100, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
 
 
 @dataclass
@@ -122,19 +150,20 @@ class LimitsConfig:
     epochs: int = field(default=5, metadata=_check(positive_number, "expected a positive integer"))
     duration_s: float = field(default=10.0, metadata=_check(positive_number, "expected a positive number"))
     max_robots: int = field(default=256, metadata=_check(positive_number, "expected a positive integer"))
-    seed: int = 0
+    seed: int = field(default=0, metadata=_SEED)
     network: str = "wifi7"
     progress: bool = True
 
 
 @dataclass
 class ControlConfig:
-    bind: str = "tcp://127.0.0.1:5557"
-    connect: str | None = None  # address other services dial when it differs from the bind (containers)
+    bind: str = field(default="tcp://127.0.0.1:5557", metadata=_ADDRESS)
+    connect: str | None = field(default=None, metadata=_ADDRESS)
+    # address other services dial when it differs from the bind (containers)
     heartbeat_s: float = field(default=0.5, metadata=_check(positive_number, "expected a positive number"))
     missed_heartbeats: int = field(default=6, metadata=_check(positive_number, "expected a positive integer"))
     state_dir: str = "state"
-    metrics_port: int = field(default=9101, metadata=_check(_non_negative, "expected a port number (0 disables)"))
+    metrics_port: int = field(default=9101, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
     strategy: str = "ip"  # robot-to-GPU assignment: ip (integer program), smg, eps, none (round-robin per request)
     solve_time_limit_s: float = field(default=5.0, metadata=_check(positive_number, "expected a positive number"))
     # Share of each robot limit C_i the traffic controller fills (floor(C_i * headroom)); below 1
@@ -150,7 +179,7 @@ class FleetConfig:
     robots: int = field(default=8, metadata=_check(positive_number, "expected a positive integer"))
     hz: float = field(default=2.0, metadata=_check(positive_number, "expected a positive number"))
     duration_s: float = field(default=10.0, metadata=_check(positive_number, "expected a positive number"))
-    seed: int = 0
+    seed: int = field(default=0, metadata=_SEED)
     network: str = "wifi7"
     models: list[str] | None = None  # models the robots use, round-robin; all models when absent
 
@@ -292,6 +321,8 @@ def _validate(cfg: ClusterConfig) -> None:
         for k, name in enumerate(e.models):
             if name not in seen:
                 raise ConfigError(f"executors[{j}].models[{k}]: no model named {name!r}")
+            if name in e.models[:k]:  # the planner would report it under a path this file does not have
+                raise ConfigError(f"executors[{j}].models[{k}]: {name!r} is listed twice")
         if e.device != "cpu" and not (e.device.startswith("cuda:") and e.device[5:].isdigit()):
             raise ConfigError(f"executors[{j}].device: expected 'cpu' or 'cuda:N', got {e.device!r}")
     hosted = {name for e in cfg.executors for name in e.models}
@@ -426,6 +457,9 @@ def _expand_placement(data: Any) -> Any:
                 raise ConfigError(f"{path}.gpus: GPU {j} is already in the {used[j]} group; groups are disjoint")
             used[j] = arch
             executors[j]["models"] = list(members)
+    for i, m in enumerate(models):  # looked up in a set just below: a list there would raise TypeError
+        if not isinstance(m.get("arch", ""), str):
+            raise ConfigError(f"models[{i}].arch: expected a string")
     unserved = [m["name"] for m in models if m.get("arch") not in {gr["arch"] for gr in groups}]
     if unserved:
         raise ConfigError(f"placement.groups: no group serves {unserved}")

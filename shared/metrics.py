@@ -20,12 +20,12 @@ BATCH_BUCKETS = (1, 2, 4, 8, 16, 32)
 
 
 def serve(registry: CollectorRegistry, port: int, addr: str = "0.0.0.0") -> bool:
-    """Expose ``registry`` on http://addr:port/metrics; a port already taken is logged, not fatal."""
+    """Expose ``registry`` on http://addr:port/metrics; a port already taken or out of range is logged, not fatal."""
     if port <= 0:
         return False
     try:
         start_http_server(port, addr=addr, registry=registry)
-    except OSError as exc:
+    except (OSError, OverflowError) as exc:  # OverflowError: a port above 65535 (an executor's --metrics-port)
         log.error("cannot serve metrics on port %d: %s", port, exc)
         return False
     return True

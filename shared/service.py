@@ -12,10 +12,21 @@ import threading
 from shared.config import ClusterConfig, ConfigError, load_config
 
 
+def log_level(text: str) -> str:
+    """argparse type of every --log-level: a level name in any case, upper-cased. logging.basicConfig
+    raises ValueError (a traceback) on an unknown one; argparse reports it with usage and exit code 2,
+    also when it comes from $ROBION_LOG_LEVEL (argparse converts a string default the same way)."""
+    level = text.upper()
+    if level not in logging.getLevelNamesMapping():
+        names = ", ".join(n.lower() for n in ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"))
+        raise argparse.ArgumentTypeError(f"expected one of {names}, got {text!r}")
+    return level
+
+
 def service_args(name: str, argv: list[str] | None = None, extra=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog=f"robion-{name}")
     p.add_argument("-c", "--config", required=True, help="cluster YAML config")
-    p.add_argument("--log-level", default=os.environ.get("ROBION_LOG_LEVEL", "INFO"))
+    p.add_argument("--log-level", type=log_level, default=os.environ.get("ROBION_LOG_LEVEL", "INFO"))
     p.add_argument("--parent-pid", type=int, default=0,
                    help="exit when this process is gone (set by `robion up`, so no service outlives it)")
     if extra:

@@ -51,6 +51,24 @@ def test_defaults():
     (lambda d: d.update(router=[]), "router: expected a mapping"),
     (lambda d: d.pop("executors"), "executors: missing"),
     (lambda d: d.update(models="a"), "models: expected a list"),
+    # a port above 65535 made prometheus' start_http_server raise OverflowError in the service
+    (lambda d: d.update(router={"metrics_port": 70000}), "router.metrics_port: expected a port number"),
+    (lambda d: d.update(control={"metrics_port": 65536}), "control.metrics_port: expected a port number"),
+    (lambda d: d["executors"][0].update(metrics_port=99999), "executors[0].metrics_port: expected a port number"),
+    # torch's manual_seed overflows above 2**64, numpy's default_rng refuses negative seeds: both crashed a
+    # process later with a message that named no key
+    (lambda d: d["models"][0].update(seed=2 ** 70), "models[0].seed: expected a non-negative integer"),
+    (lambda d: d.update(engine={"seed": -1}), "engine.seed: expected a non-negative integer"),
+    (lambda d: d.update(fleet={"seed": -3}), "fleet.seed: expected a non-negative integer"),
+    (lambda d: d.update(control={"limits": {"seed": -1}}), "control.limits.seed: expected a non-negative integer"),
+    # the planner reported this as "models.a.gpus: duplicate GPU index in [0, 0]", a path not in the file
+    (lambda d: d["executors"][0].update(models=["a", "b", "a"]), "executors[0].models[2]: 'a' is listed twice"),
+    # zmq refused these in the router / control plane with a ZMQError traceback
+    (lambda d: d.update(router={"bind": "5555"}), "router.bind: expected an address like tcp://HOST:PORT"),
+    (lambda d: d.update(router={"backend": "tcp://127.0.0.1"}), "router.backend: expected an address like"),
+    (lambda d: d.update(router={"backend_connect": "tcp://router:70000"}), "router.backend_connect: expected"),
+    (lambda d: d.update(control={"bind": "http://127.0.0.1:5557"}), "control.bind: expected an address like"),
+    (lambda d: d.update(control={"connect": "tcp://control:port"}), "control.connect: expected an address like"),
 ])
 def test_errors_name_their_path(mutate, message):
     data = base()

@@ -72,3 +72,35 @@ def test_compose_addresses_point_at_compose_services():
     for name, service in SERVICES.items():
         assert set(service.get("depends_on", [])) <= set(SERVICES), name
         assert service["build"]["dockerfile"] == "deploy/Dockerfile" and (ROOT / "deploy/Dockerfile").exists()
+
+
+def test_prometheus_scrapes_every_compose_service_on_its_metrics_port():
+    """deploy/prometheus.yml reaches each service's /metrics, scaled-out executor replicas included (they
+    have no fixed host names: the compose service name resolves to all of them)."""
+    from services.executor.main import _args as executor_args
+
+    prom = yaml.safe_load((ROOT / "deploy" / "prometheus.yml").read_text())
+    scraped = set()
+    for job in prom["scrape_configs"]:
+        for static in job.get("static_configs", []):
+            scraped |= set(static["targets"])
+        for dns in job.get("dns_sd_configs", []):
+            scraped |= {f"{name}:{dns['port']}" for name in dns["names"]}
+    wanted = set()
+    for name, service in SERVICES.items():
+        module, *args = python_argv(service)
+        kind = module.split(".")[1]
+        parsed = service_args(kind, args, executor_args if kind == "executor" else None)
+        cfg = load_config(ROOT / parsed.config)
+        if kind == "router":
+            port = cfg.router.metrics_port
+        elif kind == "controlplane":
+            port = cfg.control.metrics_port
+        else:  # as services/executor/main.py picks it: --metrics-port, else the config's, else 9110 + index
+            index = next((i for i, e in enumerate(cfg.executors) if e.name == parsed.name), 0)
+            ex = next((e for e in cfg.executors if e.name == parsed.name), None)
+            port = parsed.metrics_port if parsed.metrics_port is not None else (
+                ex.metrics_port_or_default(index) if ex else 9110 + index)
+        if port:
+            wanted.add(f"{name}:{port}")
+    assert wanted <= scraped, f"not scraped: {sorted(wanted - scraped)}"

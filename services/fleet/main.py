@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 
 from services.fleet.robots import check_settings, run_fleet
 from shared.client import RobionError
-from shared.config import dial_address
-from shared.service import load_or_exit, setup_logging
+from shared.config import dial_address, valid_address
+from shared.service import load_or_exit, log_level, setup_logging
 
 log = logging.getLogger("robion.fleet")
 
@@ -25,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int)
     p.add_argument("--network")
     p.add_argument("--json", metavar="FILE", help="also write the report as JSON")
-    p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--log-level", type=log_level, default="WARNING")
     p.add_argument("--parent-pid", type=int, default=0)
     args = p.parse_args(argv)
     setup_logging("fleet", args.log_level)
@@ -37,13 +38,16 @@ def main(argv: list[str] | None = None) -> int:
     hz = f.hz if args.hz is None else args.hz
     duration_s = f.duration_s if args.duration is None else args.duration
     network = args.network or f.network
+    seed = f.seed if args.seed is None else args.seed
     try:
-        check_settings(robots, hz, duration_s, network)
+        check_settings(robots, hz, duration_s, network, seed)
     except ValueError as exc:
         p.error(f"--{exc}")  # usage and the bad option on stderr, exit code 2
+    if args.address and not valid_address(args.address):  # zmq would raise ZMQError "Invalid argument"
+        p.error(f"--address: expected an address like tcp://HOST:PORT, got {args.address!r}")
     try:
         report = run_fleet(address, robots=robots, hz=hz, duration_s=duration_s,
-                           seed=f.seed if args.seed is None else args.seed, network=network, models=f.models)
+                           seed=seed, network=network, models=f.models)
     except (ValueError, RobionError) as exc:
         log.error("%s", exc)
         return 1
@@ -51,7 +55,11 @@ def main(argv: list[str] | None = None) -> int:
     print(report.table())
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump(report.to_dict(), fh, indent=2)
+            # A model without a successful reply has NaN percentiles: null in the file, since a bare NaN
+            # is not JSON (jq and JSON.parse refuse the whole report).
+            models = {name: {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
+                      for name, m in report.to_dict()["models"].items()}
+            json.dump({**report.to_dict(), "models": models}, fh, indent=2, allow_nan=False)
     sys.stdout.flush()
     return 0
 

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import zmq
 
-from shared.client import Completion, RobotClient, wait_any
+from shared.client import Completion, RequestTimeout, RobotClient, wait_any
 from shared.config import positive_number
 from shared.netmodel import NETWORKS
 
@@ -52,7 +52,7 @@ class FleetReport:
         return "\n".join(rows)
 
 
-def check_settings(robots: int, hz: float, duration_s: float, network: str) -> None:
+def check_settings(robots: int, hz: float, duration_s: float, network: str, seed: int = 0) -> None:
     """ValueError naming the first setting a fleet cannot run with (a rate <= 0 would never advance a robot's clock)."""
     if isinstance(robots, bool) or not isinstance(robots, int) or robots < 1:
         raise ValueError(f"robots: expected a positive integer, got {robots!r}")
@@ -61,6 +61,8 @@ def check_settings(robots: int, hz: float, duration_s: float, network: str) -> N
             raise ValueError(f"{name}: expected a positive number, got {value!r}")
     if network not in NETWORKS:
         raise ValueError(f"network: expected one of {', '.join(sorted(NETWORKS))}, got {network!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:  # numpy's default_rng refuses it later
+        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
 
 
 def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int = 0, network: str = "wifi7",
@@ -69,7 +71,7 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
 
     Raises ValueError for settings out of range and for a router that serves none of the models.
     """
-    check_settings(robots, hz, duration_s, network)
+    check_settings(robots, hz, duration_s, network, seed)
     rng = np.random.default_rng(seed)
     net = NETWORKS[network]
     ctx = zmq.Context.instance()
@@ -128,8 +130,11 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
         e2e = np.array([(c.latency_s + net.latency_s(c.request_bytes, c.reply_bytes)) * 1e3 for c in ok])
         server = np.array([c.timings.server_ms for c in ok])
         met = int((e2e <= info.deadline_ms).sum()) if len(e2e) else 0
-        errors = Counter(c.error.code.value for c in comps if c.error is not None)
-        unanswered = len(ids) - len(comps)
+        # A reply the SDK gave up on (RequestTimeout, code UNAVAILABLE) is as lost as one still awaited when
+        # the drain ends: both are NO_REPLY, never mixed with the server's own UNAVAILABLE answers.
+        errors = Counter(c.error.code.value for c in comps
+                         if c.error is not None and not isinstance(c.error, RequestTimeout))
+        unanswered = len(ids) - len(comps) + sum(isinstance(c.error, RequestTimeout) for c in comps)
         if unanswered:
             errors["NO_REPLY"] = unanswered
         reports[model] = ModelReport(

@@ -56,7 +56,10 @@ class PromptTokenizer:
                 from tokenizers import Tokenizer
             except ImportError as e:
                 raise ImportError(f"loading {path} needs the 'tokenizers' package (pip install tokenizers)") from e
-            tok = Tokenizer.from_file(path)
+            try:
+                tok = Tokenizer.from_file(path)
+            except Exception as e:  # the library raises a bare Exception for a file it cannot parse
+                raise ValueError(f"cannot load tokenizer {path}: {e}") from None
             size = tok.get_vocab_size()
             encode = lambda text: tok.encode(text).ids  # noqa: E731
         elif path.endswith(".model"):
@@ -65,7 +68,10 @@ class PromptTokenizer:
             except ImportError as e:
                 raise ImportError(f"loading {path} needs the 'sentencepiece' package "
                                   "(pip install sentencepiece)") from e
-            sp = spm.SentencePieceProcessor(model_file=path)
+            try:
+                sp = spm.SentencePieceProcessor(model_file=path)
+            except RuntimeError as e:  # "could not parse ModelProto": not a sentencepiece model
+                raise ValueError(f"cannot load tokenizer {path}: {e}") from None
             size = sp.get_piece_size()
             encode = lambda text: [sp.bos_id()] * (sp.bos_id() >= 0) + sp.encode(text)  # noqa: E731
         else:

@@ -38,14 +38,21 @@ def load_weights(model: VLAModel, path: str) -> VLAModel:
     """Load a safetensors file into ``model`` in place; keys and shapes must match exactly.
 
     Tensors are cast to each parameter's dtype and device. Raises FileNotFoundError or
-    WeightsError (naming the offending keys) and leaves the model untouched on error.
+    WeightsError (naming the offending keys, or saying the file is no safetensors file) and
+    leaves the model untouched on error.
     """
-    from safetensors import safe_open
+    from safetensors import SafetensorError, safe_open
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"weights file not found: {path}")
     expected = model.state_dict()
-    with safe_open(path, framework="pt", device="cpu") as f:
+    try:
+        opened = safe_open(path, framework="pt", device="cpu")
+    except SafetensorError as exc:
+        # e.g. a torch.save checkpoint: the library's own message ("header too large") does not say
+        # that, and its exception is no ValueError, so a service loading the file would crash.
+        raise WeightsError(f"{path} is not a safetensors file ({exc})") from None
+    with opened as f:
         meta = f.metadata() or {}
         keys = set(f.keys())
         problems = []

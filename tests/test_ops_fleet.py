@@ -1,0 +1,106 @@
+"""The fleet report counts a lost reply as NO_REPLY whenever it is found missing, and refuses a bad
+--address or --seed with the option's name.
+
+A stand-in router (a ROUTER socket speaking the real protocol, in a thread) describes one model, answers
+the requests of robot 0 with UNAVAILABLE and never answers robot 1's: the router's UNAVAILABLE and a reply
+that never came are different faults for an operator (retry vs. a lost message), so they must not share
+a column.
+"""
+
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import zmq
+
+from services.fleet.robots import run_fleet
+from shared import protocol
+from tests.helpers import TOY_INFO, cluster_config, free_ports
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+class HalfDeafRouter:
+    def __init__(self, address: str):
+        self.ctx = zmq.Context()
+        self.sock = self.ctx.socket(zmq.ROUTER)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.bind(address)
+        self.stop = threading.Event()
+        self.answered = self.dropped = 0
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        while not self.stop.is_set():
+            if not self.sock.poll(50):
+                continue
+            identity, *frames = self.sock.recv_multipart(copy=True)
+            msg = protocol.decode(frames)
+            if isinstance(msg, protocol.Hello):
+                reply = protocol.Metadata(id=msg.id, models={"toy-a": protocol.ModelInfo.from_wire(TOY_INFO)})
+            elif identity.endswith(b"-000"):  # robot 0: a real error answer
+                self.answered += 1
+                reply = protocol.ErrorReply(id=msg.id, code=protocol.ErrorCode.UNAVAILABLE, message="no executor")
+            else:  # robot 1: the reply is lost
+                self.dropped += 1
+                continue
+            self.sock.send_multipart([identity, *protocol.encode(reply)])
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5)
+        self.sock.close()
+        self.ctx.term()
+
+
+def test_lost_replies_are_no_reply_also_after_the_client_timeout():
+    (port,) = free_ports(1)
+    router = HalfDeafRouter(f"tcp://127.0.0.1:{port}")
+    try:
+        # drain_s past the SDK's 10 s reply timeout: the lost replies surface as RequestTimeout in the
+        # run, which the report counted as the router's UNAVAILABLE answers.
+        report = run_fleet(f"tcp://127.0.0.1:{port}", robots=2, hz=4, duration_s=0.5, drain_s=12, network="none")
+    finally:
+        router.close()
+    r = report.models["toy-a"]
+    assert router.answered > 0 and router.dropped > 0
+    assert r.sent == router.answered + router.dropped and r.replies == 0 and r.slo_attainment == 0
+    assert r.errors == {"UNAVAILABLE": router.answered, "NO_REPLY": router.dropped}, r.errors
+
+
+@pytest.mark.parametrize("args, message", [(("--address", "router:5555"), "--address"),
+                                           (("--seed", "-1"), "--seed")])
+def test_bad_address_or_seed_is_a_usage_error(tmp_path, args, message):
+    path, _ = cluster_config(tmp_path)
+    res = subprocess.run([sys.executable, "-m", "services.fleet.main", "-c", str(path), "--duration", "0.5", *args],
+                         capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert message in res.stderr, res.stderr
+
+
+def test_json_report_of_a_model_with_no_replies_is_strict_json(tmp_path):
+    """p50/p99 of a model with no successful reply are NaN, which json.dump writes as a bare NaN: not JSON
+    (jq and JSON.parse refuse the file). They are written as null."""
+    import json
+
+    path, _ = cluster_config(tmp_path)
+    (port,) = free_ports(1)
+    router = HalfDeafRouter(f"tcp://127.0.0.1:{port}")
+    out = tmp_path / "report.json"
+    try:
+        res = subprocess.run([sys.executable, "-m", "services.fleet.main", "-c", str(path), "--address",
+                              f"tcp://127.0.0.1:{port}", "--robots", "2", "--duration", "0.3", "--json", str(out)],
+                             capture_output=True, text=True, cwd=ROOT, timeout=60)
+    finally:
+        router.close()
+    assert res.returncode == 0, res.stderr
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    report = json.loads(out.read_text(), parse_constant=refuse)
+    r = report["models"]["toy-a"]
+    assert r["replies"] == 0 and r["p50_ms"] is None and r["p99_ms"] is None and r["server_p50_ms"] is None
