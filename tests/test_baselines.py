@@ -206,3 +206,46 @@ def test_harness_drives_each_kind(kind):
     assert s.sent > 0 and s.no_reply == 0
     assert s.slo_attainment > 0.9, res.table()
     assert res.epochs[-1].telemetry is not None
+
+
+def test_procdisagg_vlm_failure_returns_its_handoff_slot_and_input_slot():
+    """A VLM batch that fails in the VLM worker is answered INTERNAL, and the handoff group and
+    input slot it held go back: the next batches of that model must still run. (Before, the
+    group was kept: with ``handoff_slots`` failures the VLM worker waited forever for a free one,
+    and every later request of the model went unanswered.)"""
+    m = build_model("toy", "tiny", seed=1)
+    real = m.vlm_stage
+
+    def vlm_stage(images, state, tokens):
+        if bool((state[:, 0] == 1234.0).any()):
+            raise RuntimeError("injected VLM fault")
+        return real(images, state, tokens)
+
+    m.vlm_stage = vlm_stage  # the thread workers share this model object
+    sink = Sink()
+    eng = make_engine({"toy": ServedModel("toy", m, 5.0)},
+                      EngineConfig(kind="procdisagg", max_batch=1, handoff_slots=1, procdisagg_workers="thread"),
+                      CPU, sink)
+    eng.prepare()
+    stop = threading.Event()
+    th = threading.Thread(target=eng.run, args=(stop,), daemon=True)
+    th.start()
+    try:
+        rng = np.random.default_rng(3)
+        bad = [make_req(m, "toy", f"bad{i}", rng) for i in range(3)]
+        for i, r in enumerate(bad):
+            r.state[0] = 1234.0
+            eng.submit(r)
+            sink.wait(i + 1, timeout=10)
+        good = make_req(m, "toy", "good", rng)
+        eng.submit(good)
+        sink.wait(4, timeout=10)
+        got = {r.request.id: r for r in sink.results}
+        assert sorted(got) == ["bad0", "bad1", "bad2", "good"]
+        assert all(got[f"bad{i}"].error[0] == ErrorCode.INTERNAL for i in range(3))
+        assert got["good"].error is None
+        np.testing.assert_allclose(got["good"].actions, eager(m, good), atol=1e-5, rtol=1e-5)
+    finally:
+        stop.set()
+        th.join(60)
+        eng.close()

@@ -297,3 +297,23 @@ def test_an_executor_that_cannot_load_any_models_after_a_failed_reload_leaves(ha
     h.control.send_multipart([b"ex0", control.pack("load", models=[broken])])
     h.thread.join(30)
     assert not h.thread.is_alive() and h.io.fatal.is_set()
+
+
+@pytest.mark.parametrize("engine", [{"kind": "procdisagg", "procdisagg_workers": "thread"},
+                                    {"kind": "interdisagg", "vlm_devices": "cpu", "action_devices": "cpu"}],
+                         ids=["procdisagg", "interdisagg"])
+def test_heartbeats_survive_the_telemetry_of_every_engine_kind(harness, engine):
+    """Each heartbeat feeds the engine's telemetry records into the metrics. The comparison engines
+    keep records of their own kind (per denoising step, per batch) without a lockstep duration:
+    the I/O loop must not die on them (before, the first heartbeat after a reply raised
+    AttributeError and ended the executor's I/O thread, so nothing more was answered)."""
+    h = harness(engine={"max_batch": 1, **engine},
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0})
+    h.send(h.request("first"))
+    h.wait_replies(["first"])
+    assert getattr(h.replies["first"], "actions", None) is not None
+    time.sleep(0.3)  # several heartbeats, with the first reply's telemetry record in the ring
+    assert h.thread.is_alive()
+    h.send(h.request("second"))
+    h.wait_replies(["second"], timeout_s=10)
+    assert getattr(h.replies.get("second"), "actions", None) is not None

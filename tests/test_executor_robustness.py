@@ -184,3 +184,42 @@ def test_sigterm_withdraws_the_executor_before_it_stops(tmp_path):
         finally:
             for c in clients:
                 c.close()
+
+
+# ----------------------------------------------------------------------------- an engine that has stopped
+
+
+@pytest.mark.parametrize("kind", ["monolithic", "robion", "procdisagg", "interdisagg"])
+def test_a_request_submitted_after_the_engine_stopped_is_refused_not_lost(kind):
+    """Once an engine's loop has ended (``finish`` answered everything queued), nothing reads its
+    queues again: a request put there would never be answered. That happens when the I/O thread
+    has read ``EngineSlot.engine`` and a reload stops that engine before the submit lands, or when
+    procdisagg's loop ends on a dead stage process while the executor keeps routing to it. Such a
+    submit must raise UNAVAILABLE (the I/O thread then answers it) instead of queueing silently."""
+    from services.executor.engine import make_engine
+    from shared.protocol import ErrorCode, ProtocolError
+
+    model = build_model("toy", seed=1)
+    sink = Collector()
+    extra = {"procdisagg": {"procdisagg_workers": "thread"},
+             "interdisagg": {"vlm_devices": "cpu", "action_devices": "cpu"}}.get(kind, {})
+    eng = make_engine({"toy": ServedModel("toy", model, 60.0)}, EngineConfig(kind=kind, max_batch=2, **extra), CPU,
+                      sink)
+    eng.prepare()
+    try:
+        first, late = _toy_requests(model, 2)
+        late.id = "late"
+        assert _run_engine(eng, [first]) == []  # served (or answered at the stop), then the loop ended
+        with pytest.raises(ProtocolError) as refused:
+            eng.submit(late)
+        assert refused.value.code == ErrorCode.UNAVAILABLE
+        assert sink.ids() == ["r0"]
+        # An engine run again (the capacity harness reuses one per epoch) takes requests again.
+        again = _toy_requests(model, 1)[0]
+        again.id = "again"
+        assert _run_engine(eng, [again]) == []
+        assert sink.ids() == ["again", "r0"]
+    finally:
+        close = getattr(eng, "close", None)
+        if close is not None:
+            close()

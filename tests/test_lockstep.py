@@ -31,6 +31,14 @@ def make_req(model, rid: str, rng: np.random.Generator, deadline_s: float = 60.0
                    noise=rng.standard_normal((io.horizon, io.action_dim)).astype(np.float32) if fixed_noise else None)
 
 
+def submit_n(eng: LockstepEngine, model, name: str, n: int, rng: np.random.Generator) -> None:
+    """Submit requests "0".."n-1" for ``model`` served as ``name``."""
+    for i in range(n):
+        r = make_req(model, str(i), rng)
+        r.model = name
+        eng.submit(r)
+
+
 def eager(model, r: Request, noise: np.ndarray | None = None) -> np.ndarray:
     with torch.inference_mode():
         h = model.vlm_stage(torch.from_numpy(r.images)[None], torch.from_numpy(r.state)[None], torch.from_numpy(r.tokens)[None])
@@ -566,11 +574,7 @@ def test_multi_tensor_handoff_model_equals_eager():
 
     model = build_model("heavytoy", "small", seed=3)
     eng, sink = engine_for({"h": (model, 1.0)}, max_batch=2)
-    rng = np.random.default_rng(9)
-    for i in range(3):
-        r = make_req(model, str(i), rng)
-        r.model = "h"
-        eng.submit(r)
+    submit_n(eng, model, "h", 3, np.random.default_rng(9))
     drive(eng)
     assert sink.ids() == ["0", "1", "2"]
     for res in sink.results:
@@ -748,3 +752,78 @@ def test_launch_ahead_failure_after_the_action_part_loses_no_request():
     for res in got.values():
         assert res.error is None
         np.testing.assert_allclose(res.actions, eager(model, res.request), rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("ahead", [False, True])
+def test_a_failed_launch_still_answers_the_requests_its_take_shed(ahead, monkeypatch):
+    """The take that forms a lockstep's batch also sheds the late heads of the queues. When issuing
+    that lockstep then fails, its batch is answered INTERNAL, and the shed requests must still get
+    their DEADLINE_EXCEEDED: they are out of the queues, so nothing else would ever answer them."""
+    model = build_model("toy", seed=1)
+    eng, sink = (ahead_engine if ahead else engine_for)({"toy": (model, 1.0)}, max_batch=1)
+    rng = np.random.default_rng(21)
+    late, fresh, after = make_req(model, "late", rng, deadline_s=-1.0), make_req(model, "fresh", rng), \
+        make_req(model, "after", rng)
+    real = eng.stages["toy"].stage
+    calls = {"n": 0}
+
+    def fails_once(b, batch):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise RuntimeError("injected fault")
+        return real(b, batch)
+
+    monkeypatch.setattr(eng.stages["toy"], "stage", fails_once)
+    for r in (late, fresh, after):
+        r.model = "toy"
+        eng.submit(r)
+    for _ in range(100):  # the engine thread's loop (Engine.run): a failed step is logged, the loop goes on
+        try:
+            if not eng.step() and eng._pending is None and eng._last is None and eng._ahead is None:
+                break
+        except RuntimeError:
+            pass
+    got = {res.request.id: res for res in sink.results}
+    assert len(sink.results) == 3 and sorted(got) == ["after", "fresh", "late"]
+    assert got["late"].error[0] == ErrorCode.DEADLINE_EXCEEDED
+    assert got["fresh"].error[0] == ErrorCode.INTERNAL
+    assert got["after"].error is None
+
+
+def test_a_batch_failed_twice_is_answered_once(monkeypatch):
+    """A GPU fault is sticky: after one launch fails, the next wait on the device fails too. With
+    launch-ahead, issuing lockstep k+1's action part fails (its batch, whose VLM stage lockstep k runs,
+    is answered INTERNAL), then waiting for lockstep k fails as well: that batch must not be answered
+    a second time (two answers to one request id)."""
+    model = build_model("toy", seed=1)
+    eng, sink = ahead_engine({"toy": (model, 1.0)}, max_batch=1)
+    submit_n(eng, model, "toy", 3, np.random.default_rng(22))
+    runner = eng.runner
+    real_handoff, real_wait = runner.launch_handoff, runner.wait
+    faults = {"handoff": 1, "wait": 1}
+
+    def handoff(*a):
+        if faults["handoff"]:
+            faults["handoff"] -= 1
+            raise RuntimeError("injected device fault")
+        return real_handoff(*a)
+
+    def wait(*a):
+        if faults["wait"]:
+            faults["wait"] -= 1
+            raise RuntimeError("injected device fault (sticky)")
+        return real_wait(*a)
+
+    monkeypatch.setattr(runner, "launch_handoff", handoff)
+    monkeypatch.setattr(runner, "wait", wait)
+    for _ in range(100):  # the engine thread's loop (Engine.run)
+        try:
+            if not eng.step() and eng._pending is None and eng._last is None and eng._ahead is None:
+                break
+        except RuntimeError:
+            pass
+    ids = [res.request.id for res in sink.results]
+    assert sorted(ids) == ["0", "1", "2"], ids  # each exactly once
+    got = {res.request.id: res for res in sink.results}
+    assert got["0"].error[0] == ErrorCode.INTERNAL and got["1"].error[0] == ErrorCode.INTERNAL
+    assert got["2"].error is None

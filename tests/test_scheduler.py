@@ -200,6 +200,7 @@ def test_engine_with_shed_late_answers_a_hopeless_request_deadline_exceeded_at_o
     estimate = eng.queues.service_estimate("toy")
     assert estimate > 0 and all(r.actions is not None for r in results)
     # One step on this thread right after the submit, so the request is still short of its deadline when taken.
+    eng.queues.reopen()  # the loop's finish closed the queues; from here the test is the engine's loop
     now = time.monotonic()
     # It waited (arrived an estimate ago) and is due before a batch can finish: could have made it, cannot now.
     eng.submit(req("toy", "hopeless", now - estimate, now + estimate / 2))

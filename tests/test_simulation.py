@@ -7,6 +7,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -153,6 +154,22 @@ def test_requests_still_queued_at_the_end_are_answered_as_errors(toy):
     s = res.models["toy"]
     assert s.errors == {"UNAVAILABLE": s.sent} and s.slo_attainment == 0.0
 
+
+
+def test_a_reused_engine_takes_requests_before_its_thread_gets_going(toy):
+    # The previous epoch's finish closes the queues (a submit after an engine stopped is refused
+    # UNAVAILABLE); the host reopens them before the next epoch, not only the engine's thread, which
+    # may start late: the robots' first requests of the epoch must still be served.
+    class LateStart(QueueModelEngine):
+        def run(self, stop) -> None:
+            time.sleep(0.15)
+            super().run(stop)
+
+    cfg = EngineConfig(max_batch=1, shed_expired=False)
+    host = EngineHost(lambda sink: LateStart(served(toy, 1000), cfg, CPU, sink, 0.001), reuse=True)
+    res = simulate(host, [RobotGroup("toy", 4, 10.0)], SimConfig(epochs=2, duration_s=0.3, drain_s=0.3))
+    s = res.models["toy"]
+    assert s.sent > 0 and s.errors == {} and s.ok == s.sent and s.slo_attainment == 1.0
 
 # ----------------------------------------------------------------------------- capacity search
 

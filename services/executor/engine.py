@@ -71,6 +71,7 @@ class Engine:
         raise NotImplementedError
 
     def run(self, stop: threading.Event) -> None:
+        self.queues.reopen()  # closed by the previous run's finish, if any
         while not stop.is_set():
             try:
                 if not self.step():
@@ -80,8 +81,8 @@ class Engine:
         self.finish()
 
     def finish(self) -> None:
-        """Answer everything still queued at shutdown."""
-        pending = self.queues.drain()
+        """Answer everything still queued at shutdown; later submits are refused (UNAVAILABLE)."""
+        pending = self.queues.close()
         if pending:
             self.on_results([Result(r, error=(ErrorCode.UNAVAILABLE, "executor is shutting down")) for r in pending])
 

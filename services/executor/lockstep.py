@@ -251,6 +251,7 @@ class _Batch:
     admitted: float
     lockstep: int
     vlm_end: float = 0.0
+    failed: bool = False  # answered INTERNAL already: a later failure of its lockstep must not answer it again
 
     @property
     def b(self) -> int:
@@ -593,6 +594,8 @@ class LockstepEngine(Engine):
             runner.end_launch()
             self._pending = None
             self._fail([b for b in (act, vlm) if b is not None], exc)
+            # The take already removed these from the queues, and the caller never sees them once we raise.
+            self._report_expired(expired)
             raise
         issued = time.perf_counter()
         self._note_launch((issued - decided) * 1e6)
@@ -811,6 +814,11 @@ class LockstepEngine(Engine):
 
     def _fail(self, batches: list[_Batch], exc: Exception) -> None:
         log.error("lockstep %d failed: %r", self._index, exc)
+        # A batch can fail twice (a failed action part issued ahead, then its VLM lockstep's wait on a
+        # device whose fault is sticky); its requests get one answer.
+        batches = [b for b in batches if not b.failed]
+        for b in batches:
+            b.failed = True
         self._emit([Result(r, error=(ErrorCode.INTERNAL, f"inference failed: {type(exc).__name__}"))
                     for b in batches for r in b.requests])
 

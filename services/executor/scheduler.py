@@ -143,6 +143,8 @@ class ModelQueues:
         self._service = {m: ServiceTimes() for m in models} if shed_late else {}
         self._cond = threading.Condition()
         self._pending = 0
+        # Closed once the engine's loop has ended: nothing would ever take a request put then.
+        self._closed = False
 
     def note_service(self, model: str, seconds: float, now: float | None = None) -> None:
         """A batch of ``model`` took ``seconds`` from entering the VLM stage to its results (shed_late)."""
@@ -164,6 +166,9 @@ class ModelQueues:
 
     def put(self, req: Request) -> None:
         with self._cond:
+            if self._closed:
+                raise ProtocolError(ErrorCode.UNAVAILABLE, "the engine has stopped (executor shutting down or "
+                                                           "changing its models); retry")
             q = self._queues.get(req.model)
             if q is None:
                 raise ProtocolError(ErrorCode.UNKNOWN_MODEL, f"model {req.model!r} is not served by this executor")
@@ -228,3 +233,16 @@ class ModelQueues:
                 q.clear()
             self._pending = 0
             return out
+
+    def close(self) -> list[Request]:
+        """``drain`` and refuse every later ``put`` (UNAVAILABLE), in one step: the engine's loop has
+        ended, so a request queued after its last drain would never be answered (a submit racing a
+        reload's stop, or an engine whose loop ended on a fault)."""
+        with self._cond:
+            self._closed = True
+            return self.drain()
+
+    def reopen(self) -> None:
+        """Take requests again: an engine loop (re)starts (the capacity harness runs one engine per epoch)."""
+        with self._cond:
+            self._closed = False

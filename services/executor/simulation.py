@@ -343,6 +343,9 @@ class EngineHost:
         engine = self.engine
         stop = threading.Event()
         self._sink = sink
+        # The previous epoch's finish closed the queues, and run reopens them only once its thread runs:
+        # reopen here too, or a robot submitting first would be refused UNAVAILABLE (a miss).
+        engine.queues.reopen()
         thread = threading.Thread(target=engine.run, args=(stop,), name=f"engine-{self.label}", daemon=True)
         thread.start()
         try:

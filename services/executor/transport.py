@@ -390,7 +390,11 @@ class ExecutorIO:
             if rec.index <= self._last_lockstep:
                 continue
             self._last_lockstep = rec.index
-            self.metrics.lockstep.observe(rec.duration_ms / 1e3)
+            # Only lockstep records have a duration: procdisagg keeps per-step and interdisagg per-batch
+            # records, which are no locksteps (and reading a field they lack would end the I/O loop).
+            duration_ms = getattr(rec, "duration_ms", None)
+            if duration_ms is not None:
+                self.metrics.lockstep.observe(duration_ms / 1e3)
             gap = getattr(rec, "cpu_gap_us", None)
             if gap is not None:
                 self.metrics.lockstep_gap.observe(gap / 1e6)

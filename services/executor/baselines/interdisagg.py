@@ -284,6 +284,7 @@ class InterDisaggEngine(Engine):
     # ------------------------------------------------------------------ serving
 
     def run(self, stop: threading.Event) -> None:
+        self.queues.reopen()  # closed by the previous run's finish, if any
         self._start()
         stop.wait()
         self.finish()

@@ -223,12 +223,14 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, free_inputs, resul
         mi, slot, seqs, admitted = msg
         b = len(seqs)
         p, st = shared.plans[mi], stages[mi]
+        slot_held, g = True, None  # given back on failure: kept, they would stall this model for good
         try:
             v = inputs[mi][slot]
             np_in = {k: t.numpy() for k, t in v.items()}
             st.stage(b, [_Obs(np_in["images"][i], np_in["state"][i], np_in["tokens"][i], np_in[NOISE][i])
                          for i in range(b)])
             free_inputs.put((mi, slot))  # copied into this process's pinned staging: the slot is free
+            slot_held = False
             while not free[mi]:  # back-pressure: wait for the action process to release a group
                 free[mi].append(free_groups[mi].get())
             while True:  # collect any other released groups without waiting
@@ -254,6 +256,10 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, free_inputs, resul
             t_end = time.monotonic()
         except Exception as exc:
             log.exception("VLM batch failed")
+            if slot_held:
+                free_inputs.put((mi, slot))
+            if g is not None:  # never sent to the action process: free again for the next batch
+                free[mi].appendleft(g)
             results.put(("error", seqs, f"inference failed: {type(exc).__name__}"))
             continue
         to_action.put((mi, g, seqs, admitted, t_end))
@@ -636,6 +642,7 @@ class ProcDisaggEngine(Engine):
         self._emit([Result(r, error=(ErrorCode.INTERNAL, "procdisagg stage failed")) for r in batch])
 
     def run(self, stop: threading.Event) -> None:
+        self.queues.reopen()  # closed by the previous run's finish, if any
         while not stop.is_set():
             try:
                 if not self.step():
