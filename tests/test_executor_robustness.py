@@ -30,9 +30,12 @@ def _record(i: int) -> LockstepRecord:
                           action_arch=None, action_batch=0, sm_level=None, duration_ms=1.0, vlm_ms=1.0, action_ms=0.0)
 
 
-def _run_engine(eng, reqs) -> list[BaseException]:
-    """Run the engine thread as the executor does, submit ``reqs``, stop; returns what escaped the thread."""
+def _run_engine(eng, reqs, sink: Collector) -> list[BaseException]:
+    """Run the engine thread as the executor does, submit ``reqs``, stop once ``sink`` holds their answers
+    (or after 30 s); returns what escaped the thread. Stopping earlier would answer a request the loop has
+    not taken yet UNAVAILABLE, which is the shutdown's job, not what these tests look at."""
     escaped: list[BaseException] = []
+    expected = len(sink.results) + len(reqs)
 
     def target(stop):
         try:
@@ -45,6 +48,9 @@ def _run_engine(eng, reqs) -> list[BaseException]:
     t.start()
     for r in reqs:
         eng.submit(r)
+        time.sleep(0.005)
+    deadline = time.monotonic() + 30
+    while len(sink.results) < expected and time.monotonic() < deadline and t.is_alive():
         time.sleep(0.005)
     stop.set()
     t.join(30)
@@ -96,7 +102,7 @@ def test_lockstep_engine_with_full_telemetry_file_answers_every_request(max_batc
     model = build_model("toy", seed=1)
     eng, sink = engine_for({"toy": (model, 60.0)}, max_batch=max_batch, telemetry_file="/dev/full")
     reqs = _toy_requests(model, 12)
-    escaped = _run_engine(eng, reqs)
+    escaped = _run_engine(eng, reqs, sink)
     assert escaped == []
     assert sink.ids() == sorted(r.id for r in reqs)  # each exactly once
     assert all(res.error is None for res in sink.results)
@@ -111,7 +117,7 @@ def test_monolithic_engine_with_full_telemetry_file_answers_every_request():
                            EngineConfig(kind="monolithic", max_batch=2, telemetry_file="/dev/full"), CPU, sink)
     eng.prepare()
     reqs = _toy_requests(model, 12)
-    assert _run_engine(eng, reqs) == []
+    assert _run_engine(eng, reqs, sink) == []
     assert sink.ids() == sorted(r.id for r in reqs)
     assert all(res.error is None for res in sink.results)
 
@@ -209,7 +215,7 @@ def test_a_request_submitted_after_the_engine_stopped_is_refused_not_lost(kind):
     try:
         first, late = _toy_requests(model, 2)
         late.id = "late"
-        assert _run_engine(eng, [first]) == []  # served (or answered at the stop), then the loop ended
+        assert _run_engine(eng, [first], sink) == []  # served, then the loop ended
         with pytest.raises(ProtocolError) as refused:
             eng.submit(late)
         assert refused.value.code == ErrorCode.UNAVAILABLE
@@ -217,7 +223,7 @@ def test_a_request_submitted_after_the_engine_stopped_is_refused_not_lost(kind):
         # An engine run again (the capacity harness reuses one per epoch) takes requests again.
         again = _toy_requests(model, 1)[0]
         again.id = "again"
-        assert _run_engine(eng, [again]) == []
+        assert _run_engine(eng, [again], sink) == []
         assert sink.ids() == ["again", "r0"]
     finally:
         close = getattr(eng, "close", None)

@@ -15,6 +15,7 @@ import uuid
 
 import numpy as np
 import zmq
+from zmq.utils.monitor import recv_monitor_message
 
 from services.executor.hosting import EngineSlot, Hosted, ModelStore, ServedInput
 from services.executor.scheduler import Request, Result
@@ -121,6 +122,11 @@ class ExecutorIO:
         self.backend.setsockopt(zmq.IDENTITY, name.encode())
         self.backend.setsockopt(zmq.LINGER, 1000)
         self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * cfg.router.max_message_bytes + 65536)
+        # Each (re)connect to the router is reported here, so a restarted router hears our hello (and
+        # instance) at once: otherwise it would learn our instance only at our next registration, and
+        # could not tell a later restart of ours from our first hello (requests in flight to the old
+        # process would then wait out router.request_timeout_s).
+        self.backend_events = self.backend.get_monitor_socket(zmq.EVENT_CONNECTED)
         self.backend.connect(dial_address(cfg.router.backend, cfg.router.backend_connect))
         # Hello at once: with ROUTER_HANDOVER the connect takes this name over at the router, so it must learn
         # now, not after the engine has started (seconds to minutes), that an earlier process of this name is
@@ -182,7 +188,7 @@ class ExecutorIO:
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop``; the caller then calls ``withdraw`` before stopping the engine."""
         self._poller = zmq.Poller()
-        for s in (self.backend, self.ctl, self.wake_rx):
+        for s in (self.backend, self.ctl, self.wake_rx, self.backend_events):
             self._poller.register(s, zmq.POLLIN)
         self.register()
         self._last_beat = time.monotonic()
@@ -199,6 +205,16 @@ class ExecutorIO:
                 except zmq.Again:
                     break
         self._send_results()
+        if self.backend_events in ready:
+            connected = False
+            while True:
+                try:
+                    event = recv_monitor_message(self.backend_events, zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                connected |= event["event"] == zmq.EVENT_CONNECTED
+            if connected:
+                self._hello()  # the same instance again to a router that knows it changes nothing
         if self.backend in ready:
             for _ in range(256):
                 try:
@@ -356,7 +372,8 @@ class ExecutorIO:
         # Leave the routing table now rather than after missed heartbeats.
         self._ctl_send("deregister", executor=self.name)
         self.ctl.setsockopt(zmq.LINGER, 500)
-        for s in (self.backend, self.ctl, self.wake_rx, self.wake_tx):
+        self.backend.disable_monitor()
+        for s in (self.backend_events, self.backend, self.ctl, self.wake_rx, self.wake_tx):
             s.close()
 
     def _update_gauges(self, depths: dict[str, int]) -> None:

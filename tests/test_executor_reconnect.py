@@ -1,0 +1,47 @@
+"""A restarted router hears the executor's hello (with its instance) as soon as the executor reconnects.
+
+The router tells a restarted executor from the hello's per-process instance token (tests/test_router_restart.py).
+A router that itself restarted knows no instances: without a hello on reconnect it would learn this
+executor's only at its next registration, and a later restart of the executor would look like a first
+hello, so its requests in flight would wait out router.request_timeout_s.
+"""
+
+from __future__ import annotations
+
+import time
+
+import zmq
+
+from shared import control
+from tests.test_executor_io import Harness
+
+
+def hellos_until(sock: zmq.Socket, deadline: float, stop_at: dict | None = None) -> list[dict]:
+    """The hellos ``sock`` receives until ``deadline``, or until one equals ``stop_at``."""
+    out: list[dict] = []
+    while sock.poll(max(0, int((deadline - time.monotonic()) * 1000))):
+        identity, _, frame = sock.recv_multipart()
+        assert identity == b"ex0"
+        out.append(control.unpack(frame))
+        if out[-1] == stop_at or time.monotonic() >= deadline:
+            break
+    return out
+
+
+def test_the_executor_says_hello_again_to_a_restarted_router(tmp_path):
+    h = Harness(tmp_path)
+    try:
+        hellos_until(h.router, time.monotonic() + 0.5)  # the start-up hellos (construction, registration)
+        h.router.close()  # the router process goes away ...
+        router = h.ctx.socket(zmq.ROUTER)  # ... and a new one binds the same address
+        router.setsockopt(zmq.LINGER, 0)
+        router.bind(h.cfg.router.backend)
+        h.router = router
+        expected = {"kind": "executor_hello", "executor": "ex0", "instance": h.io.instance}
+        got = hellos_until(router, time.monotonic() + 5.0, stop_at=expected)
+        assert expected in got, got
+        # The executor still serves through the new router.
+        h.send(h.request("after-restart"))
+        assert h.router.poll(10_000), "no reply through the restarted router"
+    finally:
+        h.close()
