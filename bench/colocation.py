@@ -128,7 +128,8 @@ def summary(rows: list[dict], experiment: str) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("experiment", choices=["e4", "e5"])
-    p.add_argument("--scenarios", nargs="*", help="subset of the built-in scenarios")
+    p.add_argument("--scenarios", nargs="*", help="subset of the built-in scenarios (e4: "
+                   f"{', '.join(E4_SCENARIOS)}; e5: {', '.join(E5_SCENARIOS)}; default: all)")
     p.add_argument("--size", default="full")
     p.add_argument("--device", default="cuda:0")
     p.add_argument("--robots", default="12,16,20", help="total robots on the GPU, split by the scenario's shares")

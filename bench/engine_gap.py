@@ -49,8 +49,9 @@ def payloads(model, n: int, seed: int) -> list[tuple[np.ndarray, np.ndarray, np.
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", default="heavytoy:full", help="comma-separated arch:size; repeats are co-located variants")
-    ap.add_argument("--import", dest="imports", action="append", default=["bench.models"])
-    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--import", dest="imports", action="append", default=["bench.models"],
+                    help="module registering extra architectures (bench.models is always imported)")
+    ap.add_argument("--seconds", type=float, default=10.0, help="measured seconds per run, after 1 s of warm-up")
     ap.add_argument("--max-batch", type=int, default=2)
     ap.add_argument("--sm-policy", default="table", choices=["table", "none", "static"])
     ap.add_argument("--static-sms", type=int, default=0)

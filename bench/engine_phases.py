@@ -30,15 +30,16 @@ from shared.models import build_model  # noqa: E402
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--models", default="heavytoy:full")
-    ap.add_argument("--import", dest="imports", action="append", default=["bench.models"])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", default="heavytoy:full", help="comma-separated arch:size (runs on cuda:0)")
+    ap.add_argument("--import", dest="imports", action="append", default=["bench.models"],
+                    help="module registering extra architectures (bench.models is always imported)")
     ap.add_argument("--locksteps", type=int, default=300)
-    ap.add_argument("--sm-policy", default="none")
-    ap.add_argument("--sm-table", default=None)
-    ap.add_argument("--fixed-noise", action="store_true")
+    ap.add_argument("--sm-policy", default="none", help="none or table (static needs static_sms, not set here)")
+    ap.add_argument("--sm-table", default=None, help="SM table file (sm-policy table)")
+    ap.add_argument("--fixed-noise", action="store_true", help="requests bring zero noise (none drawn at submit)")
     ap.add_argument("--ahead", action="store_true", help="launch-ahead on (off by default: time each launch phase in the gap)")
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None, help="JSON of the per-phase medians and p99s")
     args = ap.parse_args()
     for mod in args.imports:
         importlib.import_module(mod)

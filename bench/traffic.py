@@ -6,13 +6,13 @@ on several GPUs at once (--devices cuda:0,cuda:1,...) or one after another on on
 router hop, measured separately (docs/RESULTS.md), is not part of these numbers.
 
     # the robot limits both experiments need, measured on all devices at once into a cache file
-    python bench/traffic.py limits --arch pi0 --arch2 xr0 --rates 1,2,4 --hz 2 --devices cuda:0,cuda:1,cuda:2,cuda:3 \
+    python bench/traffic.py limits --arch pi0 --arch2 xr0 --rates 1,2,4 --hz 2 --devices cuda:0,cuda:1,cuda:2,cuda:3 \\
         --limits-cache bench/results/traffic_limits.json
     # experiment 6: 4 fine-tuned variants at 1/2/2/4 Hz, equal robots, 90% of 4 GPUs; SMG vs EPS vs the integer program
-    python bench/traffic.py strategies --arch pi0 --devices cuda:0,cuda:1,cuda:2,cuda:3 \
+    python bench/traffic.py strategies --arch pi0 --devices cuda:0,cuda:1,cuda:2,cuda:3 \\
         --limits-cache bench/results/traffic_limits.json --out bench/results/traffic_strategies.json
     # experiment 7: 4 + 4 variants of two architectures, Mix vs disjoint groups, at shares of the GPUs' capacity
-    python bench/traffic.py placements --arch pi0 --arch2 xr0 --loads 0.8,0.9,1.0 --devices cuda:0,cuda:1,cuda:2,cuda:3 \
+    python bench/traffic.py placements --arch pi0 --arch2 xr0 --loads 0.8,0.9,1.0 --devices cuda:0,cuda:1,cuda:2,cuda:3 \\
         --limits-cache bench/results/traffic_limits.json --out bench/results/traffic_placements.json
 """
 

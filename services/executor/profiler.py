@@ -3,7 +3,7 @@ partitioning.
 
 For every (VLM architecture, VLM batch, action architecture, action batch) that can
 co-occur in a lockstep, the profiler replays that lockstep on the GPU at every SM level
-(multiples of 8 up to the SM count, plus unrestricted) and keeps the fastest. It uses the
+(multiples of 8 below the SM count, plus unrestricted) and keeps the fastest. It uses the
 engine's own runner and graphs, so it times exactly what serving will run.
 
 Then each action graph is tried planned for, or confined to, the SMs a restricted VLM leaves

@@ -6,7 +6,8 @@ the network is a model (``shared.netmodel``) added to the measured server latenc
 sockets, no router, so what is measured is the engine, not the I/O layer.
 
 Only the public Engine API is used (constructor sink, ``prepare``, ``submit``,
-``run(stop)``, ``models``), so every engine kind plugs in. An ``EngineHost`` owns one
+``run(stop)``, ``models``, ``queues.reopen()``, and ``telemetry`` and ``close`` where an engine
+has them), so every engine kind plugs in. An ``EngineHost`` owns one
 engine built by a factory: it prepares it once (graph capture can take minutes on a GPU)
 and runs it for one epoch at a time; ``run`` returning calls ``finish``, which answers
 everything still queued, so nothing leaks from one epoch into the next.
