@@ -28,9 +28,10 @@ from shared.protocol import (MAX_HEADER_BYTES, MAX_ID_CHARS, ErrorCode, ErrorRep
 
 log = logging.getLogger("robion.client")
 
-# The generated ids are "<robot_id>-<tag>-<counter>"; this leaves room for the tag and a 20-digit counter,
-# so an id the client makes is always one the router accepts (at most MAX_ID_CHARS characters).
-MAX_ROBOT_ID_CHARS = MAX_ID_CHARS - 32
+# The generated ids are "<robot_id>-<session>-<counter>" or "<robot_id>-<session>-<tag>-<counter>"; this leaves
+# room for the 8-character session, a tag and a 20-digit counter, so an id the client makes is always one the
+# router accepts (at most MAX_ID_CHARS characters).
+MAX_ROBOT_ID_CHARS = MAX_ID_CHARS - 48
 MAX_IDENTITY_BYTES = 255  # ZeroMQ's limit on a socket identity
 MAX_WHY_CHARS = 1024  # a decoder message can quote a peer's string (a dtype, a kind): keep the error readable
 
@@ -115,11 +116,19 @@ class RobotClient:
         except zmq.ZMQError:
             self.socket.close(linger=0)
             raise
+        # The router tells requests apart by (identity, id) and gives a reconnecting identity's replies to the new
+        # connection, and its request_timeout_s outlasts ours: a client replacing another under the same robot_id
+        # (a restarted robot, a new client after a timeout) must not reuse its ids, or it is refused "already in
+        # flight" or handed the actions of the old client's request. Hence a per-client session in every id.
+        self._session = uuid.uuid4().hex[:8]
         self._ids = itertools.count()
         # id -> (model, sent_at, bytes, the answer's type). In send order, hence in sent_at order (a request
         # is added once, when it goes out): the oldest, the next to expire, is always the first.
         self._pending: dict[RequestId, tuple[str, float, int, type]] = {}
-        self._done: dict[str, Completion] = {}
+        # Outcomes a blocking call read off the socket while it waited for its own, in arrival order, until poll()
+        # returns them. A list, not a map by id: an id may be used again once answered, and each request's
+        # outcome must still come out once.
+        self._done: list[Completion] = []
         self._metadata: dict[str, ModelInfo] | None = None
 
     # -- non-blocking API
@@ -130,7 +139,7 @@ class RobotClient:
         if not isinstance(images, Mapping):
             cams = self._camera_names(model, len(images))
             images = dict(zip(cams, images))
-        rid = request_id or f"{self.robot_id}-{next(self._ids)}"
+        rid = request_id or f"{self.robot_id}-{self._session}-{next(self._ids)}"
         frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
                                      state=np.asarray(state, dtype=np.float32), instruction=instruction))
         self._send(rid, model, frames, InferReply)
@@ -146,8 +155,7 @@ class RobotClient:
         # A blocking call (infer, ping, metadata) reads every reply off the shared socket while it waits
         # for its own and keeps the others in _done; they are this poll's results, returned first. With
         # any in hand, poll only gathers what else is already here and does not wait.
-        out = list(self._done.values())
-        self._done.clear()
+        out, self._done = self._done, []
         deadline = time.monotonic() + timeout_s
         while True:
             # Replies already here first: a request whose reply has come is not one to give up on.
@@ -199,7 +207,7 @@ class RobotClient:
 
     def _round_trip(self, message: type, answer: type, tag: str, timeout_s: float | None) -> Completion:
         """Send a message that carries only an id and wait for its answer; its error is raised."""
-        rid = f"{self.robot_id}-{tag}-{next(self._ids)}"
+        rid = f"{self.robot_id}-{self._session}-{tag}-{next(self._ids)}"
         self._send(rid, "", encode(message(id=rid)), answer)
         done = self._wait_for(rid, timeout_s)
         if done.error is not None:
@@ -264,17 +272,17 @@ class RobotClient:
     def _wait_for(self, rid: str, timeout_s: float | None) -> Completion:
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + timeout_s
-        while rid not in self._done:
+        while True:
             left = deadline - time.monotonic()
             if left <= 0 or not self.socket.poll(int(left * 1000) + 1):
-                if rid in self._done:
-                    break
                 self._pending.pop(rid, None)
                 raise RequestTimeout(rid, timeout_s)
             done = self._receive_one()
-            if done is not None:
-                self._done[done.request_id] = done  # another request's outcome: poll returns it
-        return self._done.pop(rid)
+            if done is None:
+                continue
+            if done.request_id == rid:
+                return done
+            self._done.append(done)  # another request's outcome: poll returns it
 
     def _receive_one(self) -> Completion | None:
         """Read one message; the outcome of the request in flight it answers, or None if it answers none."""

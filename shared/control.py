@@ -25,7 +25,17 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
 
-from shared.protocol import ModelInfo, pack_header, unpack_header
+from shared.protocol import ModelInfo, pack_header, unpack_map
+
+# Control messages pass only between Robion's own processes (control plane, router, executors, the operator
+# CLI), never from robots, and they grow with the cluster: the routing table (and `status`, which carries it)
+# holds every model's description, routes and one quota per (model, executor), so 300 fine-tuned variants on
+# 64 GPUs make about 75 KB and every model on every GPU far more; an `apply` carries the whole config file.
+# A robot header's limits (64 KiB, 1024 map entries) would make the router refuse such a table and keep
+# routing by a stale one for good, so control messages get their own. They still bound what a peer on the
+# control socket can make msgpack allocate.
+MAX_CONTROL_BYTES = 16 * 1024 * 1024
+MAX_CONTROL_LEN = 1 << 20  # entries in any one map or array of a control message
 
 
 def pack(kind: str, **fields: Any) -> bytes:
@@ -33,14 +43,16 @@ def pack(kind: str, **fields: Any) -> bytes:
 
 
 def unpack(frame: bytes | memoryview) -> dict[str, Any]:
-    return unpack_header(frame)
+    """Decode a control message; ProtocolError (TOO_LARGE, BAD_REQUEST) when it cannot be read."""
+    return unpack_map(frame, max_bytes=MAX_CONTROL_BYTES, max_map_len=MAX_CONTROL_LEN, max_array_len=MAX_CONTROL_LEN,
+                      what="control message")
 
 
 class ControlError(str, Enum):
     """The `code` of the control plane's error replies: stable, for programs to act on."""
 
     BAD_REQUEST = "BAD_REQUEST"  # not msgpack, not a map, unknown kind, a missing or mistyped field
-    TOO_LARGE = "TOO_LARGE"  # a message beyond the header size limit
+    TOO_LARGE = "TOO_LARGE"  # a message beyond MAX_CONTROL_BYTES
     BAD_CONFIG = "BAD_CONFIG"  # apply: the new config is not valid YAML or fails validation
     RESTART_REQUIRED = "RESTART_REQUIRED"  # apply: it changes settings read only at start-up
     BUSY = "BUSY"  # apply: a placement change is still in progress

@@ -210,16 +210,26 @@ def pack_header(header: dict[str, Any]) -> bytes:
 
 def unpack_header(frame: Frame) -> dict[str, Any]:
     """Decode frame 0 with hard limits, so hostile input cannot make msgpack allocate much."""
-    if len(frame) > MAX_HEADER_BYTES:
-        raise ProtocolError(ErrorCode.TOO_LARGE, f"header is {len(frame)} bytes; the limit is {MAX_HEADER_BYTES}")
+    return unpack_map(frame, max_bytes=MAX_HEADER_BYTES, max_map_len=MAX_MAP_LEN, max_array_len=4096, what="header")
+
+
+def unpack_map(frame: Frame, max_bytes: int, max_map_len: int, max_array_len: int, what: str) -> dict[str, Any]:
+    """Decode one msgpack map of at most ``max_bytes`` bytes and ``max_*_len`` entries per map / array.
+
+    ProtocolError TOO_LARGE beyond ``max_bytes``, BAD_REQUEST for anything that is not such a map.
+    Robots' headers use the limits above (unpack_header); the services' own control messages,
+    which grow with the cluster, use larger ones (shared.control.unpack).
+    """
+    if len(frame) > max_bytes:
+        raise ProtocolError(ErrorCode.TOO_LARGE, f"{what} is {len(frame)} bytes; the limit is {max_bytes}")
     try:
         header = msgpack.unpackb(frame, raw=False, strict_map_key=True,
-                                 max_str_len=MAX_HEADER_BYTES, max_bin_len=MAX_HEADER_BYTES,
-                                 max_array_len=4096, max_map_len=MAX_MAP_LEN, max_ext_len=0)
+                                 max_str_len=max_bytes, max_bin_len=max_bytes,
+                                 max_array_len=max_array_len, max_map_len=max_map_len, max_ext_len=0)
     except Exception as exc:  # msgpack raises several unrelated types on garbage
-        raise ProtocolError(ErrorCode.BAD_REQUEST, f"header is not valid msgpack ({type(exc).__name__})") from None
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{what} is not valid msgpack ({type(exc).__name__})") from None
     if not isinstance(header, dict):
-        raise ProtocolError(ErrorCode.BAD_REQUEST, "header must be a msgpack map")
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{what} must be a msgpack map")
     return header
 
 

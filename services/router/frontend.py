@@ -255,9 +255,14 @@ class Router:
             log.warning("executor %s sent an undecodable reply header", frames[0].bytes)
             return
         rid = header_id(header)
-        flight = self.in_flight.pop(flight_key(robot, rid), None)
-        if flight is None:
-            return  # already answered (timed out or executor declared gone): one answer per request
+        key = flight_key(robot, rid)
+        flight = self.in_flight.get(key)
+        # Only the executor the request went to answers it. Once the router has answered a request itself
+        # (timed out, executor gone from the table), the robot may send another under the same id, which can
+        # go to another executor; the first one's late answer is for the older observation.
+        if flight is None or flight.executor.encode() != frames[0].bytes:
+            return  # already answered (timed out or executor declared gone), or not by this executor
+        del self.in_flight[key]
         self.stats["replies"] += 1
         status = "ok" if header.get("kind") == "reply" else str(header.get("code", "internal")).lower()
         self.metrics.requests.labels(flight.model, status).inc()
@@ -336,6 +341,12 @@ class Router:
             except TableError as exc:
                 return self._bad_table.warn("kept routing table v%d: the control plane sent an unreadable one: %s",
                                             self.routing.table.version, exc)
+            if table.version == 0 and self.routing.table.version != 0:
+                # Version 0 is a control plane's table before any executor has registered: nothing in it. One
+                # that restarted starts there again; installing it would answer every request UNKNOWN_MODEL
+                # ("do not retry") and fail those in flight until the executors register again.
+                return self._bad_table.warn("kept routing table v%d: the control plane sent its empty table v0 "
+                                            "(it restarted?)", self.routing.table.version)
             if table.version != self.routing.table.version:
                 gone = self.routing.update(table)
                 self.metrics.table_version.set(table.version)

@@ -1,0 +1,107 @@
+"""A robot that comes back under the same robot_id (its process restarted, or it made a new RobotClient after
+a timeout) must not reuse the request ids of the client before it.
+
+The router tells requests apart by (socket identity, id) and hands a reconnecting identity's replies to the
+new connection (ROUTER_HANDOVER), and the router's request_timeout_s (30 s) outlasts the client's timeout_s
+(10 s). The SDK used to number its ids from 0 in every client ("arm-0", "arm-1", ...), so the new client's
+first requests either collided with the old ones still in flight (refused BAD_REQUEST, "do not retry") or, once
+the old request was answered, were paired with the old request's actions: actions computed for another
+observation. Real router loop (RouterThread), real SDK; the executor is a DEALER the test drives.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import zmq
+
+from shared.client import RequestTimeout, RobotClient
+from shared.protocol import InferReply, decode, encode
+from tests.test_router_robustness import INFO, RouterThread, one_executor_table
+
+
+def observation() -> tuple[dict[str, np.ndarray], np.ndarray]:
+    return ({c: np.zeros(INFO.image_shape, np.uint8) for c in INFO.cameras}, np.zeros(INFO.state_dim, np.float32))
+
+
+def receive(executor: zmq.Socket) -> tuple[bytes, object]:
+    assert executor.poll(3000), "the request did not reach the executor"
+    robot, *body = executor.recv_multipart()
+    return robot, decode(body).id
+
+
+def answer(executor: zmq.Socket, robot: bytes, rid, value: float) -> None:
+    actions = np.full((INFO.horizon, INFO.action_dim), value, np.float32)
+    executor.send_multipart([robot, *encode(InferReply(id=rid, model="toy-a", actions=actions))])
+
+
+def poll_all(client: RobotClient, timeout_s: float) -> list:
+    """What ``client.poll`` returns until nothing is pending or ``timeout_s`` has passed."""
+    got: list = []
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and client.pending():
+        got += client.poll(0.2)
+    return got
+
+
+def test_a_new_client_is_not_given_the_old_clients_actions(tmp_path):
+    images, state = observation()
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        ex = rt.executor(b"ex0", rcvhwm=0)
+        old = RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=0.3, context=rt.ctx)
+        old_rid = old.submit("toy-a", images, state)
+        robot, rid = receive(ex)
+        assert rid == old_rid
+        [timed_out] = old.poll(2.0)  # the executor is slow: the old client gives up and is replaced
+        assert isinstance(timed_out.error, RequestTimeout)
+        old.close()
+
+        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=3.0, context=rt.ctx) as new:
+            time.sleep(0.3)  # connected: the identity "arm" is now this client's (no ping: it would take an id)
+            answer(ex, robot, old_rid, 1.0)  # the old request's actions, for the old observation
+            time.sleep(0.3)  # forwarded by the router to the identity's connection: the new client
+            new_rid = new.submit("toy-a", images, state)
+            robot, rid = receive(ex)
+            assert rid == new_rid
+            answer(ex, robot, new_rid, 0.0)
+            got = poll_all(new, 3.0)
+            assert [(c.request_id, c.ok) for c in got] == [(new_rid, True)], got
+            assert np.all(got[0].actions == 0.0), "the new request got the old request's actions"
+
+
+def test_a_new_client_is_not_refused_for_the_old_clients_requests_in_flight(tmp_path):
+    images, state = observation()
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        ex = rt.executor(b"ex0", rcvhwm=0)
+        old = RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=0.3, context=rt.ctx)
+        old.submit("toy-a", images, state)
+        receive(ex)  # held by the executor: still in flight at the router (request_timeout_s 30 s)
+        old.close()  # the robot process restarts
+
+        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=3.0, context=rt.ctx) as new:
+            new_rid = new.submit("toy-a", images, state)
+            robot, rid = receive(ex)  # it used to be refused BAD_REQUEST "already in flight" instead
+            assert rid == new_rid
+            answer(ex, robot, new_rid, 0.0)
+            got = poll_all(new, 3.0)
+            assert [(c.request_id, c.ok) for c in got] == [(new_rid, True)], [(c.request_id, c.error) for c in got]
+
+
+def test_an_id_used_again_after_its_answer_keeps_both_outcomes(tmp_path):
+    """An id is unique only among requests in flight, so a robot may use it again once answered. An answer
+    that a blocking call (ping, infer, metadata) read off the socket waits in the client until poll(); one for
+    a later request with the same id used to overwrite it there, so poll() returned one outcome for two
+    requests (and pending() went from 2 to 0)."""
+    images, state = observation()
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        rt.answering_executor(b"ex0")
+        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=3.0, context=rt.ctx) as c:
+            for _ in range(2):
+                c.submit("toy-a", images, state, request_id="step")
+                time.sleep(0.3)  # its reply is waiting on the socket ...
+                c.ping()  # ... and the ping reads it while waiting for its pong
+            assert c.pending() == 2
+            got = c.poll(0.5)
+            assert [(x.request_id, x.ok) for x in got] == [("step", True), ("step", True)]
+            assert c.pending() == 0

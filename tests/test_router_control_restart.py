@@ -1,0 +1,86 @@
+"""A control plane that restarts does not make the router forget the models it serves.
+
+A control plane starts with routing table version 0: no models, no routes, nothing registered. The router
+asks for any table whose version differs from its own, so right after a control-plane restart it used to
+install that empty table and answer every request UNKNOWN_MODEL ("no model of that name is configured: do
+not retry", docs/protocol.md) until an executor registered again, and fail every request in flight. The
+real control plane (in a thread) and the real router loop run here; the executor is a DEALER the test drives.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import zmq
+
+from services.router.frontend import Router
+from shared import control
+from shared.config import dial_address
+from shared.protocol import ErrorReply, InferRequest, decode, encode
+from tests.helpers import TOY_INFO, cluster_config, start_control_plane
+
+
+def request(rid: str) -> list:
+    images = {c: np.zeros(TOY_INFO["image_shape"], np.uint8) for c in TOY_INFO["cameras"]}
+    return encode(InferRequest(id=rid, robot="arm", model="toy-a", images=images,
+                               state=np.zeros(TOY_INFO["state_dim"], np.float32)))
+
+
+def test_a_restarted_control_planes_empty_table_is_not_installed(tmp_path):
+    path, data = cluster_config(tmp_path)
+    cfg, cp_stop, cp_thread = start_control_plane(path, data)
+    ctx = zmq.Context()
+    router = Router(cfg, ctx)
+    stop = threading.Event()
+    thread = threading.Thread(target=router.run, args=(stop,), daemon=True)
+    thread.start()
+    socks = []
+    try:
+        reg = ctx.socket(zmq.DEALER)
+        reg.setsockopt(zmq.LINGER, 0)
+        reg.connect(dial_address(cfg.control.bind, cfg.control.connect))
+        socks.append(reg)
+        reg.send(control.pack("register", executor="ex0", device="cpu", instance="i0",
+                              models={"toy-a": TOY_INFO, "toy-b": TOY_INFO}))
+        assert reg.poll(3000) and control.unpack(reg.recv())["kind"] == "registered"
+        end = time.monotonic() + 5
+        while router.routing.table.routes.get("toy-a") != ["ex0"]:
+            assert time.monotonic() < end, "the router did not install the table"
+            time.sleep(0.05)
+        served = router.routing.table
+
+        ex0 = ctx.socket(zmq.DEALER)
+        ex0.setsockopt(zmq.IDENTITY, b"ex0")
+        ex0.setsockopt(zmq.LINGER, 0)
+        ex0.connect(cfg.router.backend)
+        ex0.send(b"")
+        socks.append(ex0)
+        arm = ctx.socket(zmq.DEALER)
+        arm.setsockopt(zmq.IDENTITY, b"arm")
+        arm.setsockopt(zmq.LINGER, 0)
+        arm.connect(cfg.router.bind)
+        socks.append(arm)
+        time.sleep(0.2)
+
+        # The control plane restarts (a new process, the same address); ex0 keeps serving.
+        cp_stop.set()
+        cp_thread.join(5)
+        cfg2, cp_stop, cp_thread = start_control_plane(path, data)
+        time.sleep(1.0)  # ten of the router's table polls
+        assert router.routing.table == served, "the router installed the new control plane's empty table"
+
+        arm.send_multipart(request("r1"))
+        assert ex0.poll(3000), f"not forwarded: {decode(arm.recv_multipart()) if arm.poll(100) else 'no answer'}"
+        robot, *body = ex0.recv_multipart()
+        assert robot == b"arm" and decode(body).id == "r1"
+        assert not arm.poll(100) or not isinstance(decode(arm.recv_multipart()), ErrorReply)
+    finally:
+        stop.set()
+        thread.join(5)
+        for s in socks:
+            s.close(linger=0)
+        cp_stop.set()
+        cp_thread.join(5)
+        ctx.term()
