@@ -24,12 +24,19 @@ class ConfigError(ValueError):
 
 def positive_number(v: Any) -> bool:
     """A finite number above zero: the check of every rate, size, count and timeout setting
-    (``.inf`` / ``.nan`` parse as floats from YAML, and no rate or size is infinite)."""
-    return math.isfinite(v) and v > 0
+    (``.inf`` / ``.nan`` parse as floats from YAML, and no rate or size is infinite). An int is
+    always finite; math.isfinite would raise OverflowError past a float's range."""
+    return (isinstance(v, int) or math.isfinite(v)) and v > 0
 
 
 def _non_negative(v: Any) -> bool:
-    return math.isfinite(v) and v >= 0
+    return (isinstance(v, int) or math.isfinite(v)) and v >= 0
+
+
+# Integers a setting may hold: what msgpack (the control messages, which carry robot limits and
+# populations in the routing table) and other languages' clients read as int64. Past it
+# every table_get and status of the control plane would fail to pack.
+INT_MIN, INT_MAX = -(2 ** 63), 2 ** 63 - 1
 
 
 def _power_of_two(v: Any) -> bool:
@@ -244,7 +251,10 @@ def _convert(value: Any, tp: Any, path: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{path}: expected a number")
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # an int past a float's range: as infinite as YAML's .inf, refused by the check
+            return math.inf if value > 0 else -math.inf
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{path}: expected an integer")
@@ -279,6 +289,8 @@ def _build(cls: type, data: Any, path: str) -> Any:
         check = f.metadata.get("check")
         if check and value is not None and not check[0](value):
             raise ConfigError(f"{prefix}{name}: {check[1]}")
+        if isinstance(value, int) and not isinstance(value, bool) and not INT_MIN <= value <= INT_MAX:
+            raise ConfigError(f"{prefix}{name}: {check[1] if check else 'expected an integer'} below 2**63")
         kwargs[name] = value
     return cls(**kwargs)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from pathlib import Path
 
 import yaml
@@ -74,3 +75,14 @@ def start_control_plane(path: Path, data: dict):
     t = threading.Thread(target=ControlPlane(cfg).run, args=(stop,), daemon=True)
     t.start()
     return cfg, stop, t
+
+
+def wait_for(predicate, timeout_s: float, poll_s: float = 0.1):
+    """``predicate()``'s first truthy value within ``timeout_s``, checked every ``poll_s``; None when none came."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll_s)
+    return None

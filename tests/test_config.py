@@ -69,6 +69,17 @@ def test_defaults():
     (lambda d: d.update(router={"backend_connect": "tcp://router:70000"}), "router.backend_connect: expected"),
     (lambda d: d.update(control={"bind": "http://127.0.0.1:5557"}), "control.bind: expected an address like"),
     (lambda d: d.update(control={"connect": "tcp://control:port"}), "control.connect: expected an address like"),
+    # msgpack packs no integer from 2**64 on: every table_get and status of the control plane failed
+    # without a reply (the routing table holds limits and quotas).
+    (lambda d: d["models"][0].update(limit=2 ** 64), "models[0].limit: expected a positive integer below 2**63"),
+    (lambda d: d["models"][0].update(robots=2 ** 64), "models[0].robots: expected a non-negative integer below 2**63"),
+    (lambda d: d.update(engine={"max_queue": 2 ** 63}), "engine.max_queue: expected a positive integer below 2**63"),
+    # past a float's range the checks raised OverflowError (a traceback, no key)
+    (lambda d: d["models"][0].update(limit=10 ** 400), "models[0].limit: expected a positive integer below 2**63"),
+    (lambda d: d["models"][0].update(robots=10 ** 400), "models[0].robots: expected a non-negative integer"),
+    (lambda d: d["models"][0].update(slo_ms=10 ** 400), "models[0].slo_ms: expected a positive number"),
+    (lambda d: d["models"][0].update(hz=-10 ** 400), "models[0].hz: expected a positive number"),
+    (lambda d: d.update(control={"limits": {"target": 10 ** 400}}), "control.limits.target: expected a share"),
 ])
 def test_errors_name_their_path(mutate, message):
     data = base()

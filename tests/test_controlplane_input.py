@@ -185,3 +185,51 @@ def test_apply_of_deeply_nested_yaml_is_answered_bad_config(plane):
     assert reply is not None and reply["kind"] == "error" and reply["code"] == "BAD_CONFIG", reply
     assert "YAML" in reply["message"], reply
     assert control_status(address, WAIT_S)["rollout"] is None and t.is_alive()
+
+
+# ----------------------------------------------------------------- E: values the wire cannot carry back
+
+
+def test_apply_of_a_limit_msgpack_cannot_pack_is_refused_and_tables_still_served(plane):
+    """A limit of 2**64 loaded and was installed: from then on every table_get and status failed to pack
+    their reply and went unanswered (routers never got a table again)."""
+    address, _, data, t = plane
+    new = yaml.safe_load(yaml.safe_dump(data))
+    new["models"][0]["limit"] = 2 ** 64
+    reply = request(address, "apply", config=yaml.safe_dump(new))
+    assert reply is not None and reply["kind"] == "error" and reply["code"] == "BAD_CONFIG", reply
+    assert "models[0].limit" in reply["message"], reply
+    assert request(address, "table_get", version=-1, role="router")["kind"] == "table"
+    assert control_status(address, WAIT_S) is not None and t.is_alive()
+
+
+@pytest.mark.parametrize("field, value", [("state_dim", 1e30), ("horizon", "1" * 30), ("action_dim", -1e25)])
+def test_a_model_description_that_cannot_be_sent_on_is_answered_bad_request(plane, field, value):
+    """int(1e30) is an integer msgpack cannot pack: the description was kept (it outlives its executor), and
+    every table_get and status after it failed without a reply, for every router, until a restart."""
+    address, _, _, t = plane
+    bad = {**REGISTER, "executor": "ex1", "models": {"toy-a": {**INFO, field: value}}}
+    assert_bad_request(request(address, "register", **bad), "models.toy-a")
+    assert request(address, "table_get", version=-1, role="router")["kind"] == "table"
+    status = control_status(address, WAIT_S)
+    assert status is not None and status["executors"] == {}
+    assert request(address, "register", **REGISTER)["kind"] == "registered"
+    assert t.is_alive()
+
+
+def test_an_unforeseen_failure_of_an_answered_message_is_answered_internal(plane, monkeypatch):
+    """register, table_get and status expect a reply: an unforeseen failure was only logged, and the sender
+    waited out its timeout with no idea why."""
+    import services.controlplane.state as state
+
+    address, _, _, t = plane
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("status exploded")
+
+    monkeypatch.setattr(state.ClusterState, "status", broken)
+    reply = request(address, "status")
+    assert reply is not None and reply["kind"] == "error" and reply["code"] == "INTERNAL", reply
+    assert "status exploded" in reply["message"], reply
+    monkeypatch.undo()
+    assert control_status(address, WAIT_S) is not None and t.is_alive()

@@ -1,23 +1,27 @@
 """Rollouts (`robion ctl apply`) on a real cluster: what happens to an executor whose reload fails,
 and which changes need no reload at all."""
 
-import time
 
 import yaml
 
 from shared.cluster import LocalCluster, control_request, control_status
 from shared.config import load_config
-from tests.helpers import cluster_config
+from tests.helpers import cluster_config, wait_for
 
 
-def wait_for(predicate, timeout_s: float, poll_s: float = 0.2):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll_s)
-    return None
+def apply_and_wait(address: str, new: dict, steps: list[str]) -> dict:
+    """`apply` ``new`` (a config dict), check it reloads ``steps``, and return the status once its rollout ended."""
+    reply = control_request(address, "apply", timeout_s=30, config=yaml.safe_dump(new))
+    assert reply is not None and reply["kind"] == "applied" and reply["steps"] == steps, reply
+
+    def finished():
+        status = control_status(address, 5)
+        rollout = status and status["rollout"]
+        return status if rollout and not rollout["pending"] else None
+
+    status = wait_for(finished, 60, poll_s=0.2)
+    assert status is not None, control_status(address, 5)
+    return status
 
 
 def test_an_executor_that_cannot_load_its_new_models_is_put_back_at_once(tmp_path):
@@ -31,16 +35,7 @@ def test_an_executor_that_cannot_load_its_new_models_is_put_back_at_once(tmp_pat
                           "weights": str(tmp_path / "missing.safetensors")})
     new["executors"][1]["models"] = ["toy-a", "toy-c"]
     with LocalCluster(cfg, path, log_level="WARNING"):
-        reply = control_request(cfg.control.bind, "apply", timeout_s=30, config=yaml.safe_dump(new))
-        assert reply is not None and reply["kind"] == "applied" and reply["steps"] == ["ex1"], reply
-
-        def finished():
-            status = control_status(cfg.control.bind, 5)
-            rollout = status and status["rollout"]
-            return status if rollout and not rollout["pending"] else None
-
-        status = wait_for(finished, 60)
-        assert status is not None, control_status(cfg.control.bind, 5)
+        status = apply_and_wait(cfg.control.bind, new, ["ex1"])
         assert status["rollout"]["failed"] == ["ex1"] and status["rollout"]["done"] == []
         assert status["executors"]["ex1"]["models"] == ["toy-a"]
         assert not status["executors"]["ex1"]["draining"]

@@ -59,3 +59,33 @@ def test_a_valid_cached_limit_is_reused(tmp_path):
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps({key: {"limit": 7}}))
     assert measure_limits(cfg, "ex0", hosted.models, CPU) == {"toy-a": 7}
+
+
+@pytest.mark.parametrize("value", ["abc", "0", "-2", "1.5", "99999999999999999999"])
+def test_a_bad_cpu_thread_count_stops_the_executor_with_the_variable_named(tmp_path, value):
+    """ROBION_CPU_THREADS=abc ended the executor with a ValueError traceback (and 0 with torch's RuntimeError)."""
+    import os
+    import subprocess
+    import sys
+
+    path, _ = cluster_config(tmp_path)
+    env = {**os.environ, "ROBION_CPU_THREADS": value}
+    res = subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0"],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parent.parent, env=env,
+                         timeout=120)
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    assert "ROBION_CPU_THREADS" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
+
+
+@pytest.mark.parametrize("device", ["cuda1", "gpu:0", "cuda:x"])
+def test_a_bad_device_override_stops_the_executor_with_the_flag_named(tmp_path, device):
+    """--device cuda1 ended the executor with torch's RuntimeError traceback; the config refuses the same value."""
+    import subprocess
+    import sys
+
+    path, _ = cluster_config(tmp_path)
+    res = subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0",
+                          "--device", device], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parent.parent, timeout=120)
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    assert "--device" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]

@@ -50,3 +50,10 @@ def test_serve_logs_a_port_out_of_range_instead_of_raising(caplog):
 
     assert serve(CollectorRegistry(), 70000) is False
     assert "cannot serve metrics on port 70000" in caplog.text
+
+
+def test_largest_integers_the_wire_carries_still_load():
+    data = base()
+    data["models"][0].update(limit=2 ** 63 - 1, robots=2 ** 63 - 1)
+    cfg = config_from_dict(data)
+    assert cfg.models[0].limit == 2 ** 63 - 1 and cfg.models[0].robots == 2 ** 63 - 1

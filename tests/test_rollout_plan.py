@@ -179,3 +179,20 @@ def test_an_executor_back_from_an_absence_during_its_change_stays_out_of_routing
         assert loads == ["ex0"] and not ro.failed  # sent once the router routes around it
         ro.on_register(st, "ex0", ["a", "b"])
         assert ro.finished and not st.executors["ex0"].draining
+
+
+def test_a_step_that_times_out_leaves_an_operator_drained_executor_drained():
+    """The step's timeout puts its executor back "as it is": an operator's drain is part of that."""
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _state_with(["ex0", "ex1"])
+    assert st.set_drained("ex0", True) and st.table.routes["a"] == ["ex1"]
+    ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
+    loads = []
+    ro.tick(st, lambda ex, models: loads.append(ex), now=1.0)
+    st.router_version = st.table.version
+    ro.tick(st, lambda ex, models: loads.append(ex), now=2.0)
+    assert loads == ["ex0"]
+    ro.tick(st, lambda ex, models: loads.append(ex), now=700.0)
+    assert ro.failed == ["ex0"] and ro.finished
+    assert st.table.routes["a"] == ["ex1"] and "ex0" in st.drained

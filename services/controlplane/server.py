@@ -50,6 +50,7 @@ def _mapping(msg: dict, field: str, required: bool = False) -> dict:
 
 class ControlPlane:
     KINDS = ("register", "heartbeat", "deregister", "table_get", "status", "apply", "drain", "resume")
+    ANSWERED = ("register", "table_get", "status")  # besides apply, drain and resume (see _admin)
 
     def __init__(self, cfg: ClusterConfig, context: zmq.Context | None = None):
         self.cfg = cfg
@@ -65,19 +66,28 @@ class ControlPlane:
         self.rollout: Rollout | None = None
 
     def run(self, stop: threading.Event) -> None:
+        # When the socket was last seen empty: every heartbeat sent before then has been read. Heartbeat
+        # ages are measured at that moment, not at the tick: a round that ends at its message cap right
+        # after a multi-second solve leaves live executors' heartbeats queued, and measuring at the tick
+        # expired them, their re-registrations solved again, and so on (a storm). While the plane is
+        # behind, nothing expires; the round that catches up judges every executor on what it sent.
+        drained = time.monotonic()
         while not stop.is_set():
-            if self.sock.poll(100):
+            if not self.sock.poll(100):
+                drained = time.monotonic()
+            else:
                 for _ in range(256):
                     try:
                         frames = self.sock.recv_multipart(zmq.NOBLOCK)
                     except zmq.Again:
+                        drained = time.monotonic()
                         break
                     try:
                         self._handle(frames)
                     except Exception:
                         log.exception("bad control message")
             try:
-                self._tick()
+                self._tick(drained)
             except Exception:
                 # An unforeseen failure in the periodic work (the re-plan after an expiry, a
                 # rollout step, metrics) must not end the control plane: routers and executors
@@ -85,8 +95,9 @@ class ControlPlane:
                 log.exception("periodic control-plane work failed")
         self.sock.close(linger=0)
 
-    def _tick(self) -> None:
-        for name in self.state.expire():
+    def _tick(self, drained: float | None = None) -> None:
+        """Periodic work; ``drained``: when the socket was last seen empty (heartbeat ages are measured then)."""
+        for name in self.state.expire(drained):
             log.warning("executor %s missed its heartbeats: removed from routing", name)
         if self.rollout is not None:
             self.rollout.tick(self.state, self._send_load)
@@ -162,7 +173,7 @@ class ControlPlane:
                      [s.executor for s in steps])
             return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version)
         name = _name(msg, "executor")
-        if not st.set_draining(name, kind == "drain"):
+        if not st.set_drained(name, kind == "drain"):
             return self._error(peer, ControlError.UNKNOWN_EXECUTOR, f"no executor named {name!r} is registered")
         log.info("%s %s (table v%d)", "drained" if kind == "drain" else "resumed", name, st.table.version)
         self._reply(peer, "ok", version=st.table.version)
@@ -184,6 +195,13 @@ class ControlPlane:
             # Answered, so the sender learns at once what to fix rather than waiting out its timeout.
             log.warning("bad %s message: %s", kind, exc)
             self._error(peer, ControlError.BAD_REQUEST, f"{kind}: {exc}")
+        except Exception as exc:
+            if kind not in self.ANSWERED:
+                raise  # heartbeat and deregister are never answered: logged by run()
+            # The sender waits for a reply: tell it the plane failed instead of letting it time out.
+            log.exception("%s failed", kind)
+            self._error(peer, ControlError.INTERNAL, f"{kind} failed on the control plane: {type(exc).__name__}: "
+                        f"{exc} (see the control plane's log)")
 
     def _dispatch(self, peer: bytes, kind: Any, msg: dict) -> None:
         """Every field is checked before anything changes, so a refused message leaves no trace."""
@@ -196,6 +214,14 @@ class ControlPlane:
                     models[str(model)] = ModelInfo.from_wire(info)
                 except ValueError as exc:
                     raise BadRequest(f"models.{model}: malformed model description ({exc})") from None
+                try:
+                    # The description goes into every routing table and status (and outlives this
+                    # executor): one msgpack cannot pack (int(1e30) as a state_dim) would leave all of
+                    # them unanswered from now on.
+                    control.pack("model", info=models[str(model)].to_wire())
+                except (OverflowError, TypeError, ValueError) as exc:
+                    raise BadRequest(f"models.{model}: a value of the model description cannot be sent "
+                                     f"on ({type(exc).__name__}: {exc})") from None
             # Each limit's value is checked by ClusterState.register: a bad one is ignored, not fatal.
             limits = {str(m): c for m, c in _mapping(msg, "limits").items()}
             instance = msg.get("instance", "")

@@ -26,7 +26,9 @@ class ExecutorState:
     models: dict[str, ModelInfo]
     last_seen: float
     depths: dict[str, int] = field(default_factory=dict)
-    draining: bool = False  # registered and serving what it holds, but routed nothing new
+    # registered and serving what it holds, but routed nothing new, for a placement change (rollout.py);
+    # an operator's drain is ClusterState.drained, which outlives this entry
+    draining: bool = False
     instance: str = ""  # the executor process's token: another one after a restart
 
 
@@ -44,6 +46,10 @@ class ClusterState:
         # The latest description of each model an executor registered; it outlives that
         # executor, so a configured model stays describable while no host serves it.
         self.described: dict[str, ModelInfo] = {}
+        # Executors an operator drained (`robion ctl drain`), until `resume`. Kept by name, apart from the
+        # registry entries: an executor that misses its heartbeats or restarts comes back as a new
+        # entry, and a placement change ends its own drain; neither is the operator's resume.
+        self.drained: set[str] = set()
 
     @property
     def timeout_s(self) -> float:
@@ -65,12 +71,28 @@ class ClusterState:
         self._rebuild()
 
     def set_draining(self, name: str, draining: bool) -> bool:
+        """A placement change's drain of a registered executor (lifted when its step ends)."""
         ex = self.executors.get(name)
         if ex is None:
             return False
         ex.draining = draining
         self._rebuild()
         return True
+
+    def set_drained(self, name: str, drained: bool) -> bool:
+        """An operator's drain or resume of a registered executor; False when none of that name is registered."""
+        if name not in self.executors:
+            return False
+        if drained:
+            self.drained.add(name)
+        else:
+            self.drained.discard(name)
+        self._rebuild()
+        return True
+
+    def routed_nothing_new(self, name: str) -> bool:
+        ex = self.executors.get(name)
+        return name in self.drained or (ex is not None and ex.draining)
 
     def replace_config(self, cfg: ClusterConfig) -> None:
         """New desired state (placement, populations, limits): re-solve even if the routes stay.
@@ -111,13 +133,13 @@ class ClusterState:
         routes: dict[str, list[str]] = {}
         for cfg_ex in self.cfg.executors:  # config order keeps round-robin order stable
             ex = self.executors.get(cfg_ex.name)
-            if ex is None or ex.draining:
+            if ex is None or self.routed_nothing_new(ex.name):
                 continue
             for model, info in ex.models.items():
                 models.setdefault(model, info)
                 routes.setdefault(model, []).append(ex.name)
         for name, ex in self.executors.items():  # executors not in the config (scaled out by hand)
-            if not ex.draining and all(e.name != name for e in self.cfg.executors):
+            if not self.routed_nothing_new(name) and all(e.name != name for e in self.cfg.executors):
                 for model, info in ex.models.items():
                     models.setdefault(model, info)
                     routes.setdefault(model, []).append(name)
@@ -150,7 +172,8 @@ class ClusterState:
         now = now or time.monotonic()
         expected = [e.name for e in self.cfg.executors]
         return {
-            "executors": {n: {"device": e.device, "models": sorted(e.models), "depths": e.depths, "draining": e.draining,
+            "executors": {n: {"device": e.device, "models": sorted(e.models), "depths": e.depths,
+                              "draining": self.routed_nothing_new(n),
                               "last_seen_s": round(now - e.last_seen, 3)} for n, e in self.executors.items()},
             "expected": expected,
             "table": self.table.to_wire(),

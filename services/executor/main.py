@@ -45,12 +45,25 @@ def main(argv: list[str] | None = None) -> int:
             log.error("--models: no models named %s in %s", unknown, args.config)
             return 2
     if args.device:
+        # The config's rule for `device`: torch.device would end the process with a traceback.
+        if args.device != "cpu" and not (args.device.startswith("cuda:") and args.device[5:].isdigit()):
+            log.error("--device: expected 'cpu' or 'cuda:N', got %r", args.device)
+            return 2
         ex_cfg.device = args.device
     device = torch.device(ex_cfg.device)
     if device.type == "cpu":
         # Several executors usually share the host's cores; intra-op threads on small CPU models
         # only contend with each other (ROBION_CPU_THREADS overrides).
-        torch.set_num_threads(int(os.environ.get("ROBION_CPU_THREADS", "1")))
+        threads = os.environ.get("ROBION_CPU_THREADS", "1")
+        # int() would end the process with a ValueError traceback, torch with a RuntimeError for 0
+        # or a count past a C int.
+        try:
+            if not threads.strip().isdecimal() or int(threads) < 1:
+                raise ValueError(threads)
+            torch.set_num_threads(int(threads))
+        except (ValueError, RuntimeError, OverflowError):
+            log.error("ROBION_CPU_THREADS: expected a positive integer, got %r", threads)
+            return 2
 
     if device.type == "cuda" and any(e.name == args.name for e in cfg.executors):
         free, _ = torch.cuda.mem_get_info(device)
