@@ -4,6 +4,8 @@ executor -> control plane: register {executor, device, instance, models: {name: 
                                                      -> registered {version}
                            heartbeat {executor, depths}  (answered only by reregister, when unknown)
                            deregister {executor}         (not answered)
+                           drain {executor}              -> ok {version}  (itself, as it shuts down: sent from
+                                                            its own socket, this drain ends with the process)
 router   -> control plane: table_get {version, role}  -> table {table: {version, models, routes, ...} or None}
 anyone   -> control plane: status                    -> status {executors, table, router, expected, limits,
                                                                 ready, rollout}

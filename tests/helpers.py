@@ -34,6 +34,26 @@ def free_ports(n: int) -> list[int]:
     return ports
 
 
+def wait_until_bindable(address: str, timeout_s: float = 10.0) -> None:
+    """Wait until a ``tcp://host:port`` address can be bound again. ZeroMQ closes a socket's listener in
+    its I/O thread, after ``close()`` has returned, so a test that binds the address again at once (a
+    restarted service) fails now and then with "Address already in use"."""
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    end = time.monotonic() + timeout_s
+    while True:
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as ZeroMQ binds: TIME_WAIT is no obstacle
+        try:
+            s.bind((host, int(port)))
+            return
+        except OSError:
+            if time.monotonic() >= end:
+                raise
+            time.sleep(0.01)
+        finally:
+            s.close()
+
+
 def cluster_config(tmp_path: Path, **overrides) -> tuple[Path, dict]:
     rp, bp, cp = free_ports(3)
     data = {
@@ -71,6 +91,7 @@ def start_control_plane(path: Path, data: dict):
     data["control"]["missed_heartbeats"] = 500
     path.write_text(yaml.safe_dump(data))
     cfg = load_config(path)
+    wait_until_bindable(cfg.control.bind)  # a control plane stopped just before may still hold it
     stop = threading.Event()
     t = threading.Thread(target=ControlPlane(cfg).run, args=(stop,), daemon=True)
     t.start()

@@ -99,7 +99,7 @@ def test_an_id_used_again_after_its_answer_keeps_both_outcomes(tmp_path):
         with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=3.0, context=rt.ctx) as c:
             for _ in range(2):
                 c.submit("toy-a", images, state, request_id="step")
-                time.sleep(0.3)  # its reply is waiting on the socket ...
+                assert c.socket.poll(5000), "no reply"  # its reply is waiting on the socket ...
                 c.ping()  # ... and the ping reads it while waiting for its pong
             assert c.pending() == 2
             got = c.poll(0.5)

@@ -95,3 +95,66 @@ def test_a_placement_change_of_a_drained_executor_leaves_it_drained(tmp_path):
         assert reply is not None and reply["kind"] == "ok", reply
         routes = control_status(cfg.control.bind, 5)["table"]["routes"]
         assert routes == {"toy-a": ["ex0", "ex1"], "toy-b": ["ex0", "ex1"]}, routes
+
+
+def test_an_executor_that_leaves_and_comes_back_is_routed_again(tmp_path):
+    """An executor that shuts down withdraws itself first (ExecutorIO.withdraw: `drain`, wait, then
+    `deregister`). That drain is its own, for leaving: the next process under its name (a restart, a
+    supervisor's after exit 1) must be routed again. It was kept as an operator's drain, by name, so every
+    executor that restarted while the control plane ran came back drained for good."""
+    import torch
+    import zmq
+
+    from services.executor.hosting import EngineSlot, ModelStore
+    from services.executor.transport import ExecutorIO
+    from shared.metrics import ExecutorMetrics
+    from tests.helpers import start_control_plane
+
+    path, data = cluster_config(tmp_path)  # ex0: toy-a, toy-b; ex1: toy-a
+    cfg, cp_stop, cp_thread = start_control_plane(path, data)
+    address = cfg.control.bind
+    ctx = zmq.Context()
+    store = ModelStore(torch.device("cpu"))
+    try:
+        register(address, "ex0", "a")
+
+        def serve_ex1() -> tuple[ExecutorIO, EngineSlot, threading.Event, threading.Thread]:
+            # The real I/O layer; no engine is needed to register, withdraw and leave.
+            hosted = store.load([cfg.model("toy-a")])
+            slot = EngineSlot(cfg.engine, torch.device("cpu"), lambda results: None)
+            io = ExecutorIO("ex1", cfg, "cpu", store, slot, hosted,
+                            ExecutorMetrics("ex1", "cpu", {n: s.slo_s for n, s in hosted.inputs.items()}), context=ctx)
+            stop = threading.Event()
+            thread = threading.Thread(target=io.run, args=(stop,), daemon=True)
+            thread.start()
+            return io, slot, stop, thread
+
+        def routes() -> list[str]:
+            status = control_status(address, WAIT_S)
+            return status["table"]["routes"].get("toy-a") if status else None
+
+        io, slot, stop, thread = serve_ex1()
+        assert wait_for(lambda: routes() == ["ex0", "ex1"], 10), routes()
+        # ex1 shuts down as services/executor/main.py does: stop serving, withdraw, close (deregister).
+        stop.set()
+        thread.join(10)
+        io.withdraw(ack_timeout_s=0.5, answer_timeout_s=0.2)
+        io.close()
+        slot.stop()
+        assert wait_for(lambda: "ex1" not in (control_status(address, WAIT_S) or {"executors": {"ex1": 0}})["executors"],
+                        10)
+        # A new ex1 process starts and registers.
+        io, slot, stop, thread = serve_ex1()
+        try:
+            assert wait_for(lambda: "ex1" in (control_status(address, WAIT_S) or {"executors": {}})["executors"], 10)
+            assert wait_for(lambda: routes() == ["ex0", "ex1"], 5), routes()
+            assert not control_status(address, WAIT_S)["executors"]["ex1"]["draining"]
+        finally:
+            stop.set()
+            thread.join(10)
+            io.close()
+            slot.stop()
+    finally:
+        cp_stop.set()
+        cp_thread.join(10)
+        ctx.term()

@@ -24,7 +24,7 @@ LIMITS = [7, 9, 11, 13, 17, 19, 23, 29]
 ROBOTS = [4, 6, 8, 12, 14, 17, 20, 27]
 GPUS = [f"g{j}" for j in range(8)]
 SOLVE_S = 2.0
-HEARTBEAT_S, MISSED = 0.1, 5  # expired after 0.5 s without a heartbeat
+HEARTBEAT_S, MISSED = 0.1, 10  # expired after 1 s without a heartbeat
 
 
 def test_heartbeats_queued_behind_a_long_solve_do_not_expire_live_executors(tmp_path):

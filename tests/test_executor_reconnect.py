@@ -13,6 +13,7 @@ import time
 import zmq
 
 from shared import control
+from tests.helpers import wait_until_bindable
 from tests.test_executor_io import Harness
 
 
@@ -35,6 +36,7 @@ def test_the_executor_says_hello_again_to_a_restarted_router(tmp_path):
         h.router.close()  # the router process goes away ...
         router = h.ctx.socket(zmq.ROUTER)  # ... and a new one binds the same address
         router.setsockopt(zmq.LINGER, 0)
+        wait_until_bindable(h.cfg.router.backend)  # the closed socket lets go of it in the background
         router.bind(h.cfg.router.backend)
         h.router = router
         expected = {"kind": "executor_hello", "executor": "ex0", "instance": h.io.instance}

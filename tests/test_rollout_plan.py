@@ -196,3 +196,32 @@ def test_a_step_that_times_out_leaves_an_operator_drained_executor_drained():
     ro.tick(st, lambda ex, models: loads.append(ex), now=700.0)
     assert ro.failed == ["ex0"] and ro.finished
     assert st.table.routes["a"] == ["ex1"] and "ex0" in st.drained
+
+
+def test_a_failed_reload_is_seen_after_an_absence_before_the_load():
+    """The executor missed its heartbeats while the control plane waited for the router (before the load
+    went out), came back, was drained again and sent the load; then its reload failed and it registered its
+    previous models. It was registered throughout since the load, so that means the reload failed: the step
+    fails at once. An absence before the load used to count, and the step waited out its 600 s timeout with
+    the executor drained (every `apply` BUSY meanwhile)."""
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _state_with(["ex0", "ex1"])
+    loads = []
+    ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
+
+    def tick(now):
+        ro.tick(st, lambda ex, models: loads.append(ex), now=now)
+
+    tick(1.0)  # drained; the router has not fetched that table yet
+    st.deregister("ex0")  # missed its heartbeats
+    tick(2.0)
+    st.register("ex0", "cpu", {"a": _info()}, instance="ex0-1")  # the same process, told to reregister
+    ro.on_register(st, "ex0", ["a"])
+    st.router_version = st.table.version
+    tick(3.0)
+    assert loads == ["ex0"] and st.executors["ex0"].draining
+    st.register("ex0", "cpu", {"a": _info()}, instance="ex0-1")  # its reload failed: the previous set again
+    ro.on_register(st, "ex0", ["a"])
+    assert ro.failed == ["ex0"] and ro.finished
+    assert not st.executors["ex0"].draining and st.table.routes["a"] == ["ex0", "ex1"]

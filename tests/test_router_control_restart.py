@@ -17,9 +17,10 @@ import zmq
 
 from services.router.frontend import Router
 from shared import control
+from shared.cluster import control_request, control_status
 from shared.config import dial_address
 from shared.protocol import ErrorReply, InferRequest, decode, encode
-from tests.helpers import TOY_INFO, cluster_config, start_control_plane
+from tests.helpers import TOY_INFO, cluster_config, start_control_plane, wait_for
 
 
 def request(rid: str) -> list:
@@ -68,7 +69,11 @@ def test_a_restarted_control_planes_empty_table_is_not_installed(tmp_path):
         cp_stop.set()
         cp_thread.join(5)
         cfg2, cp_stop, cp_thread = start_control_plane(path, data)
-        time.sleep(1.0)  # ten of the router's table polls
+        # Until the router has polled the new control plane (and been sent its v0) there is nothing to check.
+        address = dial_address(cfg2.control.bind, cfg2.control.connect)
+        assert wait_for(lambda: ((control_status(address, 1, ctx) or {}).get("router") or {}).get("last_seen_s")
+                        is not None, 10), "the router never polled the new control plane"
+        time.sleep(0.3)  # a few more polls, each answered with v0
         assert router.routing.table == served, "the router installed the new control plane's empty table"
 
         arm.send_multipart(request("r1"))
@@ -81,6 +86,45 @@ def test_a_restarted_control_planes_empty_table_is_not_installed(tmp_path):
         thread.join(5)
         for s in socks:
             s.close(linger=0)
+        cp_stop.set()
+        cp_thread.join(5)
+        ctx.term()
+
+
+def test_the_restarted_control_planes_first_table_is_installed_even_under_the_old_version(tmp_path):
+    """The router keeps its table over the new control plane's v0, but the new one's later tables count
+    again from v1: one numbered like the table the router kept (here v1, another executor now) must still
+    be installed. The control plane sends a table only when the router reports another version, so the
+    router routed by the old plane's table for good (and `status` said the router was up to date)."""
+    path, data = cluster_config(tmp_path)
+    cfg, cp_stop, cp_thread = start_control_plane(path, data)
+    address = dial_address(cfg.control.bind, cfg.control.connect)
+    ctx = zmq.Context()
+    router = Router(cfg, ctx)
+    stop = threading.Event()
+    thread = threading.Thread(target=router.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        reply = control_request(address, "register", timeout_s=5, context=ctx, executor="ex0", device="cpu",
+                                instance="i0", models={"toy-a": TOY_INFO})
+        assert reply is not None and reply["kind"] == "registered", reply
+        assert wait_for(lambda: router.routing.table.routes.get("toy-a") == ["ex0"], 5), router.routing.table
+        assert router.routing.table.version == 1
+
+        cp_stop.set()
+        cp_thread.join(5)
+        cfg, cp_stop, cp_thread = start_control_plane(path, data)
+        # The router has polled the new control plane (and kept its table over the empty v0).
+        assert wait_for(lambda: ((control_status(address, 1, ctx) or {}).get("router") or {}).get("last_seen_s")
+                        is not None, 5)
+        assert router.routing.table.routes.get("toy-a") == ["ex0"]
+        reply = control_request(address, "register", timeout_s=5, context=ctx, executor="ex1", device="cpu",
+                                instance="i1", models={"toy-a": TOY_INFO})
+        assert reply is not None and reply["kind"] == "registered" and reply["version"] == 1, reply
+        assert wait_for(lambda: router.routing.table.routes.get("toy-a") == ["ex1"], 5), router.routing.table
+    finally:
+        stop.set()
+        thread.join(5)
         cp_stop.set()
         cp_thread.join(5)
         ctx.term()

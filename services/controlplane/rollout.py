@@ -29,7 +29,7 @@ class Step:
     drained_version: int = 0  # the table version without this executor's routes
     loading: bool = False
     instance: str = ""  # the executor process the load was sent to
-    # Whether the executor has been off the registry since the step started. Only such an executor is
+    # Whether the executor has been off the registry since its load was sent. Only such an executor is
     # told to register again (reregister), so a re-registration of its old models from the same process
     # while it stayed registered means its reload ended: it failed and it kept its previous models.
     absent: bool = False
@@ -153,6 +153,9 @@ class Rollout:
             # (and a load sent while it is off the registry would be dropped by the socket).
             step.loading = True
             step.instance = state.executors[step.executor].instance
+            # An absence before the load (it is registered now, or the load would not go out) says nothing
+            # about the reload: a re-registration of its old set from here on is a failed reload.
+            step.absent = False
             send_load(step.executor, step.models)
             log.info("placement change: %s drained, loading %s", step.executor, [m.name for m in step.models])
         elif now - step.started > self.timeout_s:

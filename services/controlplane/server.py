@@ -173,7 +173,14 @@ class ControlPlane:
                      [s.executor for s in steps])
             return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version)
         name = _name(msg, "executor")
-        if not st.set_drained(name, kind == "drain"):
+        if kind == "drain" and peer == name.encode():
+            # The executor drains itself as it shuts down (ExecutorIO.withdraw; its control socket's identity
+            # is its name). That drain belongs to this process's registry entry, as a placement change's does:
+            # kept by name as an operator's is, the next process under the name would come back drained.
+            ok = st.set_draining(name, True)
+        else:
+            ok = st.set_drained(name, kind == "drain")
+        if not ok:
             return self._error(peer, ControlError.UNKNOWN_EXECUTOR, f"no executor named {name!r} is registered")
         log.info("%s %s (table v%d)", "drained" if kind == "drain" else "resumed", name, st.table.version)
         self._reply(peer, "ok", version=st.table.version)

@@ -106,6 +106,9 @@ class Router:
         self._bad_control = RateLimitedWarning()
         # Executor name -> the process token its last hello carried: a different one is a restart.
         self._instances: dict[str, str] = {}
+        # The table kept is a control plane's that has since restarted (it sent its empty v0): the new one
+        # numbers its tables from v1 again, so its next one is installed whatever its version.
+        self._table_outlived_plane = False
 
     # ------------------------------------------------------------------ loop
 
@@ -118,8 +121,10 @@ class Router:
             if now - self._last_table_poll >= TABLE_POLL_S:
                 self._last_table_poll = now
                 try:
-                    self.ctl.send(control.pack("table_get", version=self.routing.table.version, role="router"),
-                                  zmq.NOBLOCK)
+                    # A kept table of a plane that restarted is no version of the new plane's: report none (-1),
+                    # or a table of the new plane numbered like the kept one would never be sent.
+                    version = -1 if self._table_outlived_plane else self.routing.table.version
+                    self.ctl.send(control.pack("table_get", version=version, role="router"), zmq.NOBLOCK)
                 except zmq.Again:
                     pass  # control plane unreachable or not reading: the next poll asks again
             if now - self._last_sweep >= 0.1:
@@ -345,9 +350,11 @@ class Router:
                 # Version 0 is a control plane's table before any executor has registered: nothing in it. One
                 # that restarted starts there again; installing it would answer every request UNKNOWN_MODEL
                 # ("do not retry") and fail those in flight until the executors register again.
+                self._table_outlived_plane = True
                 return self._bad_table.warn("kept routing table v%d: the control plane sent its empty table v0 "
                                             "(it restarted?)", self.routing.table.version)
-            if table.version != self.routing.table.version:
+            if table.version != self.routing.table.version or self._table_outlived_plane:
+                self._table_outlived_plane = False
                 gone = self.routing.update(table)
                 self.metrics.table_version.set(table.version)
                 self.metrics.executors.set(len({e for ex in table.routes.values() for e in ex}))
