@@ -134,12 +134,14 @@ class RobotClient:
     # -- non-blocking API
 
     def submit(self, model: str, images: Mapping[str, np.ndarray] | Sequence[np.ndarray], state: np.ndarray,
-               instruction: str = "", request_id: str | None = None) -> str:
-        """Send a request and return its id at once; collect the outcome with ``poll``."""
+               instruction: str = "", request_id: RequestId | None = None) -> RequestId:
+        """Send a request and return its id at once (``request_id``, or one the client makes); collect the
+        outcome with ``poll``."""
         if not isinstance(images, Mapping):
             cams = self._camera_names(model, len(images))
             images = dict(zip(cams, images))
-        rid = request_id or f"{self.robot_id}-{self._session}-{next(self._ids)}"
+        # `is None`, not `or`: 0 (and "", refused below) are the caller's ids, not a request for a generated one.
+        rid = request_id if request_id is not None else f"{self.robot_id}-{self._session}-{next(self._ids)}"
         frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
                                      state=np.asarray(state, dtype=np.float32), instruction=instruction))
         self._send(rid, model, frames, InferReply)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 import zmq
 
 from shared.client import RequestTimeout, RobotClient
@@ -105,3 +106,15 @@ def test_an_id_used_again_after_its_answer_keeps_both_outcomes(tmp_path):
             got = c.poll(0.5)
             assert [(x.request_id, x.ok) for x in got] == [("step", True), ("step", True)]
             assert c.pending() == 0
+
+
+@pytest.mark.parametrize("rid", [0, 7])
+def test_an_int_id_given_by_the_caller_is_used_as_is(tmp_path, rid):
+    """The protocol allows int ids, 0 included; submit used to replace a falsy one with a generated id."""
+    images, state = observation()
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        rt.answering_executor(b"ex0")
+        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=3.0, context=rt.ctx) as c:
+            assert c.submit("toy-a", images, state, request_id=rid) == rid
+            got = poll_all(c, 3.0)
+            assert [(x.request_id, x.ok) for x in got] == [(rid, True)], got
