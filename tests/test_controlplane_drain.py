@@ -158,3 +158,41 @@ def test_an_executor_that_leaves_and_comes_back_is_routed_again(tmp_path):
         cp_stop.set()
         cp_thread.join(10)
         ctx.term()
+
+
+def test_an_executor_killed_after_its_own_drain_is_routed_again_when_it_restarts(tmp_path):
+    """An executor killed during withdraw (after its own drain, before its deregister: SIGKILL at the end of
+    a container's stop grace period) leaves its drained registry entry behind until its heartbeats time out.
+    A new process of that name registering before then is another process: its own drain ended with the old
+    one. register kept the old entry's drain, so the new process was never routed and `resume` (an
+    operator's) could not lift it."""
+    import zmq
+
+    from shared import control
+    from tests.helpers import start_control_plane
+
+    path, data = cluster_config(tmp_path)
+    cfg, cp_stop, cp_thread = start_control_plane(path, data)  # heartbeats time out only after 100 s
+    address = cfg.control.bind
+    ctx = zmq.Context()
+    try:
+        register(address, "ex0", "a")
+        register(address, "ex1", "old")
+        # The old ex1 drains itself from its own control socket (identity = its name), then is killed.
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.IDENTITY, b"ex1")
+        sock.connect(address)
+        sock.send(control.pack("drain", executor="ex1"))
+        assert sock.poll(int(WAIT_S * 1000)) and control.unpack(sock.recv())["kind"] == "ok"
+        sock.close(0)
+        assert control_status(address, WAIT_S)["executors"]["ex1"]["draining"]
+        # The new ex1 process registers before the old entry's heartbeats time out.
+        register(address, "ex1", "new")
+        status = control_status(address, WAIT_S)
+        assert not status["executors"]["ex1"]["draining"], status["executors"]
+        assert status["table"]["routes"]["toy-a"] == ["ex0", "ex1"], status["table"]["routes"]
+    finally:
+        cp_stop.set()
+        cp_thread.join(10)
+        ctx.term()

@@ -128,3 +128,53 @@ def test_the_restarted_control_planes_first_table_is_installed_even_under_the_ol
         cp_stop.set()
         cp_thread.join(5)
         ctx.term()
+
+
+def test_the_restarted_control_planes_table_is_installed_when_the_router_never_saw_its_v0(tmp_path):
+    """The router asks a restarted control plane for its table only once it has reconnected (its polls are
+    dropped meanwhile, IMMEDIATE), while an executor's queued heartbeats reach the plane at once and make it
+    register: the plane can be past v0 by the router's first poll. A table numbered like the one the router
+    kept (v1 here, another executor) was then never sent, as no v0 told the router the plane had restarted:
+    it routed by the old plane's table for good, and `status` said it was up to date."""
+    path, data = cluster_config(tmp_path)
+    cfg, cp_stop, cp_thread = start_control_plane(path, data)
+    address = dial_address(cfg.control.bind, cfg.control.connect)
+    ctx = zmq.Context()
+    router = Router(cfg, ctx)
+    # Holds the router's loop (no polls) while the control plane restarts and an executor registers with it.
+    running = threading.Event()
+    running.set()
+    expire = router._expire
+
+    def held_expire(now: float) -> None:
+        running.wait(10)
+        expire(now)
+
+    router._expire = held_expire
+    stop = threading.Event()
+    thread = threading.Thread(target=router.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        reply = control_request(address, "register", timeout_s=5, context=ctx, executor="ex0", device="cpu",
+                                instance="i0", models={"toy-a": TOY_INFO})
+        assert reply is not None and reply["kind"] == "registered", reply
+        assert wait_for(lambda: router.routing.table.routes.get("toy-a") == ["ex0"], 5), router.routing.table
+        assert router.routing.table.version == 1
+
+        running.clear()
+        time.sleep(0.3)  # the loop is held now
+        cp_stop.set()
+        cp_thread.join(5)
+        cfg, cp_stop, cp_thread = start_control_plane(path, data)
+        reply = control_request(address, "register", timeout_s=5, context=ctx, executor="ex1", device="cpu",
+                                instance="i1", models={"toy-a": TOY_INFO})
+        assert reply is not None and reply["kind"] == "registered" and reply["version"] == 1, reply
+        running.set()
+        assert wait_for(lambda: router.routing.table.routes.get("toy-a") == ["ex1"], 5), router.routing.table
+    finally:
+        running.set()
+        stop.set()
+        thread.join(5)
+        cp_stop.set()
+        cp_thread.join(5)
+        ctx.term()

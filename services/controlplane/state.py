@@ -66,8 +66,12 @@ class ClusterState:
         self.measured_limits.update({m: c for m, c in limits.items() if valid_limit(c)})
         self.described.update(models)
         old = self.executors.get(name)
+        # A registry entry's drain (a placement change's, or the executor's own as it shuts down) belongs to
+        # its process: another process under the name (one killed after its own drain leaves its entry until
+        # its heartbeats time out) starts undrained; a rollout step drains a restarted executor again itself.
+        draining = old is not None and old.draining and old.instance == instance
         self.executors[name] = ExecutorState(name, device, models, now or time.monotonic(),
-                                             draining=old.draining if old else False, instance=instance)
+                                             draining=draining, instance=instance)
         self._rebuild()
 
     def set_draining(self, name: str, draining: bool) -> bool:

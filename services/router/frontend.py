@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass
 
 import zmq
+from zmq.utils.monitor import recv_monitor_message
 
 from services.router.routing import Routing
 from shared import control
@@ -96,6 +97,9 @@ class Router:
         # Queue polls only to a connected control plane: with it down, a DEALER would queue up to
         # its high-water mark and then block the loop; with IMMEDIATE and NOBLOCK a poll is skipped.
         self.ctl.setsockopt(zmq.IMMEDIATE, 1)
+        # Each (re)connect to the control plane is reported here: it may be a restarted plane whose tables
+        # count from v1 again, and its v0 is not always seen (executors can register before our first poll).
+        self.ctl_events = self.ctl.get_monitor_socket(zmq.EVENT_CONNECTED)
         self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
         self._last_table_poll = 0.0
         self._last_sweep = 0.0
@@ -106,15 +110,15 @@ class Router:
         self._bad_control = RateLimitedWarning()
         # Executor name -> the process token its last hello carried: a different one is a restart.
         self._instances: dict[str, str] = {}
-        # The table kept is a control plane's that has since restarted (it sent its empty v0): the new one
-        # numbers its tables from v1 again, so its next one is installed whatever its version.
+        # The table kept may be a control plane's that has since restarted (it sent its empty v0, or we
+        # reconnected): the new one numbers its tables from v1 again, so its next one is installed whatever its version.
         self._table_outlived_plane = False
 
     # ------------------------------------------------------------------ loop
 
     def run(self, stop: threading.Event) -> None:
         poller = zmq.Poller()
-        for s in (self.frontend, self.backend, self.ctl):
+        for s in (self.frontend, self.backend, self.ctl, self.ctl_events):
             poller.register(s, zmq.POLLIN)
         while not stop.is_set():
             now = time.monotonic()
@@ -131,6 +135,9 @@ class Router:
                 self._last_sweep = now
                 self._expire(now)
             for sock, _ in poller.poll(50):
+                if sock is self.ctl_events:
+                    self._control_connected()
+                    continue
                 # Drain each ready socket a bounded number of times so one side cannot starve the other.
                 for _ in range(256):
                     try:
@@ -160,6 +167,8 @@ class Router:
         # the pipe is cut mid-message, and a peer dropping its connection at that moment (peers are often
         # stopped together with the router) can trip libzmq 4.3's assertion in session_base clean_pipes
         # (zeromq/libzmq#3442), aborting the process.
+        self.ctl.disable_monitor()
+        self.ctl_events.close(linger=0)
         self.ctl.close(linger=0)
         for s in (self.backend, self.frontend):
             s.close(linger=SHUTDOWN_LINGER_MS)
@@ -332,6 +341,20 @@ class Router:
         self._fail_executor(name, "restarted")
 
     # ------------------------------------------------------------------ control plane
+
+    def _control_connected(self) -> None:
+        """A (re)connect to the control plane: the table kept may be an earlier plane's, so report none
+        (-1) and install the plane's next table whatever its number. A v0 alone did not tell: a restarted
+        plane past v0 by our first poll, numbering a table like the kept one, was never asked for it."""
+        connected = False
+        while True:
+            try:
+                event = recv_monitor_message(self.ctl_events, zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            connected |= event["event"] == zmq.EVENT_CONNECTED
+        if connected:
+            self._table_outlived_plane = True
 
     def _from_control(self, frames: list[zmq.Frame]) -> None:
         # The control plane answers each poll (ten a second) the same way until it is fixed, so what
