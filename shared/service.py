@@ -9,6 +9,9 @@ import signal
 import sys
 import threading
 
+import zmq
+from zmq.utils.monitor import recv_monitor_message
+
 from shared.config import ClusterConfig, ConfigError, load_config
 
 
@@ -65,3 +68,15 @@ def stop_event(parent_pid: int = 0) -> threading.Event:
                     stop.set()
         threading.Thread(target=watch, daemon=True, name="parent-watch").start()
     return stop
+
+
+def connected_again(events: zmq.Socket) -> bool:
+    """Read every event a socket monitor (``sock.get_monitor_socket(zmq.EVENT_CONNECTED)``) holds; True when
+    one was a (re)connect: the peer may be a restarted process that knows nothing of this one yet."""
+    connected = False
+    while True:
+        try:
+            event = recv_monitor_message(events, zmq.NOBLOCK)
+        except zmq.Again:
+            return connected
+        connected |= event["event"] == zmq.EVENT_CONNECTED

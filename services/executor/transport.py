@@ -15,7 +15,6 @@ import uuid
 
 import numpy as np
 import zmq
-from zmq.utils.monitor import recv_monitor_message
 
 from services.executor.hosting import EngineSlot, Hosted, ModelStore, ServedInput
 from services.executor.scheduler import Request, Result
@@ -24,6 +23,7 @@ from shared.config import ClusterConfig, ModelConfig, dial_address
 from shared.metrics import ExecutorMetrics
 from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, RequestId, Timings, decode,
                              encode, error_frames, header_id, message_bytes, unpack_header)
+from shared.service import connected_again
 
 log = logging.getLogger("robion.executor")
 
@@ -205,16 +205,8 @@ class ExecutorIO:
                 except zmq.Again:
                     break
         self._send_results()
-        if self.backend_events in ready:
-            connected = False
-            while True:
-                try:
-                    event = recv_monitor_message(self.backend_events, zmq.NOBLOCK)
-                except zmq.Again:
-                    break
-                connected |= event["event"] == zmq.EVENT_CONNECTED
-            if connected:
-                self._hello()  # the same instance again to a router that knows it changes nothing
+        if self.backend_events in ready and connected_again(self.backend_events):
+            self._hello()  # the same instance again to a router that knows it changes nothing
         if self.backend in ready:
             for _ in range(256):
                 try:

@@ -13,7 +13,6 @@ import time
 from dataclasses import dataclass
 
 import zmq
-from zmq.utils.monitor import recv_monitor_message
 
 from services.router.routing import Routing
 from shared import control
@@ -22,6 +21,7 @@ from shared.control import RoutingTable, TableError
 from shared.metrics import RouterMetrics, serve
 from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode, error_frames,
                              header_id, max_frames, message_bytes, unpack_header)
+from shared.service import connected_again
 
 log = logging.getLogger("robion.router")
 
@@ -346,14 +346,7 @@ class Router:
         """A (re)connect to the control plane: the table kept may be an earlier plane's, so report none
         (-1) and install the plane's next table whatever its number. A v0 alone did not tell: a restarted
         plane past v0 by our first poll, numbering a table like the kept one, was never asked for it."""
-        connected = False
-        while True:
-            try:
-                event = recv_monitor_message(self.ctl_events, zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            connected |= event["event"] == zmq.EVENT_CONNECTED
-        if connected:
+        if connected_again(self.ctl_events):
             self._table_outlived_plane = True
 
     def _from_control(self, frames: list[zmq.Frame]) -> None:
