@@ -35,6 +35,20 @@ Frames = list[bytes]
 Answer = Callable[[Any, str], list[Frames]]  # (request id, request kind) -> the messages to send back
 
 
+def held_first(then: Callable[[Any, Any], list[Frames]]) -> Answer:
+    """An answer that holds the first request's answer back until the second request arrives, and then
+    sends ``then(first_id, second_id)``; nothing afterwards."""
+    held: list[Any] = []
+
+    def answer(rid: Any, kind: str) -> list[Frames]:
+        if not held:
+            held.append(rid)
+            return []
+        return then(held[0], rid)
+
+    return answer
+
+
 def good_reply(rid: Any) -> Frames:
     return [bytes(f) for f in encode(InferReply(id=rid, model="toy", actions=ACTIONS,
                                                 timings=Timings(server_ms=1.0)))]
@@ -271,15 +285,7 @@ def test_an_unattributable_reply_alone_leaves_its_request_to_time_out(serve, cas
 
 def test_a_late_malformed_reply_after_a_timeout_is_not_a_new_completion(serve):
     """One outcome per request: once infer() raised RequestTimeout, a broken answer for it is dropped."""
-    held: list[Any] = []
-
-    def answer(rid: Any, kind: str) -> list[Frames]:
-        if not held:  # hold the first request's answer back until the second arrives
-            held.append(rid)
-            return []
-        return [framed(held[0], {**FRAME_REF, "frame": 3}), good_reply(rid)]
-
-    router, c = serve(answer)
+    router, c = serve(held_first(lambda first, rid: [framed(first, {**FRAME_REF, "frame": 3}), good_reply(rid)]))
     with c:
         with pytest.raises(RequestTimeout):
             c.infer("toy", IMAGES, STATE, timeout_s=0.2)

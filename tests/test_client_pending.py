@@ -20,7 +20,7 @@ import zmq
 from shared.client import RequestTimeout, RobionError, RobotClient, wait_any
 from shared.protocol import ErrorCode
 from tests.test_client_garbled import (ACTIONS, IMAGES, STATE, UNATTRIBUTABLE, Answer, FakeRouter, Frames, good_reply,
-                                       poll_until)
+                                       held_first, poll_until)
 
 TIMEOUT_S = 0.3
 SLACK_S = 1.0  # scheduling slack on a busy host: an expiry must come within TIMEOUT_S + SLACK_S
@@ -112,15 +112,7 @@ def test_answered_requests_complete_and_unanswered_ones_expire_each_once(serve):
 
 
 def test_a_reply_after_the_expiry_is_dropped(serve):
-    held: list[Any] = []
-
-    def answer(rid: Any, kind: str) -> list[Frames]:
-        if not held:  # hold the first request's answer back until the second arrives
-            held.append(rid)
-            return []
-        return [good_reply(held[0]), good_reply(rid)]
-
-    router, c = serve(answer)
+    router, c = serve(held_first(lambda first, rid: [good_reply(first), good_reply(rid)]))
     first = c.submit("toy", IMAGES, STATE)
     got = poll_until(c, TIMEOUT_S + SLACK_S)
     assert [x.request_id for x in got] == [first]
