@@ -8,12 +8,11 @@ import os
 import signal
 import sys
 import threading
-from typing import TYPE_CHECKING
+
+import zmq
+from zmq.utils.monitor import recv_monitor_message
 
 from shared.config import ClusterConfig, ConfigError, load_config
-
-if TYPE_CHECKING:
-    import zmq
 
 
 def log_level(text: str) -> str:
@@ -74,11 +73,6 @@ def stop_event(parent_pid: int = 0) -> threading.Event:
 def connected_again(events: zmq.Socket) -> bool:
     """Read every event a socket monitor (``sock.get_monitor_socket(zmq.EVENT_CONNECTED)``) holds; True when
     one was a (re)connect: the peer may be a restarted process that knows nothing of this one yet."""
-    # Imported here, not at the top: services import this module before their signal handlers are in, and
-    # the router defers zmq until after that (router/main.py) so a stop during start-up is a clean exit.
-    import zmq
-    from zmq.utils.monitor import recv_monitor_message
-
     connected = False
     while True:
         try:
