@@ -89,3 +89,28 @@ def test_a_bad_device_override_stops_the_executor_with_the_flag_named(tmp_path, 
                          cwd=Path(__file__).resolve().parent.parent, timeout=120)
     assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
     assert "--device" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
+
+
+@pytest.mark.skipif(__import__("torch").cuda.device_count() > 0, reason="needs a host where cuda:0 is absent")
+@pytest.mark.parametrize("where", ["override", "config", "interdisagg"])
+def test_an_absent_gpu_stops_the_executor_with_the_device_named(tmp_path, where):
+    """cuda:0 on a host without a GPU (or cuda:7 on one with 4) passes the config's check, and the executor died
+    with a traceback from torch's first CUDA call. It now exits 2 naming the device and what the host has."""
+    import subprocess
+    import sys
+
+    extra: list[str] = []
+    if where == "override":
+        path, _ = cluster_config(tmp_path)
+        extra = ["--device", "cuda:0"]
+    elif where == "config":
+        path, _ = cluster_config(tmp_path, executors=[{"name": "ex0", "device": "cuda:0", "models": ["toy-a", "toy-b"]}])
+    else:
+        path, _ = cluster_config(tmp_path, engine={"kind": "interdisagg", "max_batch": 2,
+                                                   "vlm_devices": "cpu", "action_devices": "0"})
+    res = subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0", *extra],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parent.parent, timeout=120)
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    named = "engine.action_devices cuda:0" if where == "interdisagg" else "device cuda:0"
+    assert named in res.stderr and "no CUDA GPU is visible" in res.stderr, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr, res.stderr[-2000:]

@@ -10,7 +10,7 @@ import torch
 from services.executor.hosting import EngineSlot, ModelStore
 from services.executor.limits import measure_limits
 from services.executor.transport import ExecutorIO
-from shared.config import ConfigError, ExecutorConfig
+from shared.config import ClusterConfig, ConfigError, ExecutorConfig, parse_devices
 from shared.metrics import ExecutorMetrics, serve
 from shared.placement import check_fit
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
@@ -24,6 +24,24 @@ def _args(p) -> None:
     p.add_argument("--models", help="comma-separated models for an executor not in the config (scaled-out replicas)")
     p.add_argument("--device", help="override the device, e.g. cuda:1")
     p.add_argument("--metrics-port", type=int, help="override the /metrics port (0 disables)")
+
+
+def _missing_gpus(cfg: ClusterConfig, device: torch.device) -> str:
+    """Why the GPUs this executor would use are not there ("" when they are): torch fails on a GPU index past
+    the host's, or on any GPU without a driver, with a traceback deep in its first CUDA call."""
+    wanted = [(f"device {device}", device)]
+    if cfg.engine.kind == "interdisagg":
+        for key in ("vlm_devices", "action_devices"):
+            wanted += [(f"engine.{key} {d}", torch.device(d)) for d in parse_devices(getattr(cfg.engine, key))]
+    if all(dev.type != "cuda" for _, dev in wanted):
+        return ""  # a CPU executor does not ask the driver anything
+    count = torch.cuda.device_count()  # 0 without a CUDA build, a driver or a visible GPU
+    for what, dev in wanted:
+        if dev.type == "cuda" and (dev.index or 0) >= count:
+            seen = (f"this host shows {count} CUDA GPU(s), cuda:0 to cuda:{count - 1}" if count
+                    else "no CUDA GPU is visible here (no driver, none in CUDA_VISIBLE_DEVICES, or a CPU build of torch)")
+            return f"{what}: {seen}"
+    return ""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,6 +69,10 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         ex_cfg.device = args.device
     device = torch.device(ex_cfg.device)
+    missing = _missing_gpus(cfg, device)
+    if missing:
+        log.error("%s", missing)
+        return 2
     if device.type == "cpu":
         # Several executors usually share the host's cores; intra-op threads on small CPU models
         # only contend with each other (ROBION_CPU_THREADS overrides).
