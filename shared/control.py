@@ -6,9 +6,13 @@ executor -> control plane: register {executor, device, instance, models: {name: 
                            deregister {executor}         (not answered)
                            drain {executor}              -> ok {version}  (itself, as it shuts down: sent from
                                                             its own socket, this drain ends with the process)
-router   -> control plane: table_get {version, role}  -> table {table: {version, models, routes, ...} or None}
+router   -> control plane: table_get {version, role, executors?}
+                                                     -> table {table: {version, models, routes, ...} or None}
+                           (None: nothing newer, or a just-started plane holding its first table while the
+                           executors that outlived its restart register again; a router whose table is an
+                           earlier plane's reports version -1 and names that table's executors)
 anyone   -> control plane: status                    -> status {executors, table, router, expected, limits,
-                                                                ready, rollout}
+                                                                settling, ready, rollout}
 operator -> control plane: apply {config}            -> applied {steps, version}
                            drain / resume {executor} -> ok {version}
 executor -> router (backend, empty robot frame): executor_hello {executor, instance}  (not answered; the

@@ -22,14 +22,39 @@ import zmq
 from services.router.frontend import Router
 from shared.cluster import control_request, control_status
 from shared.config import dial_address
-from shared.protocol import ErrorReply, InferRequest, decode, encode
+from shared.protocol import ErrorReply, InferReply, InferRequest, decode, encode
 from tests.helpers import TOY_INFO, cluster_config, start_control_plane, wait_for
 
 
-def request(rid: str) -> list:
+def request(rid: str, model: str = "toy-a") -> list:
     images = {c: np.zeros(TOY_INFO["image_shape"], np.uint8) for c in TOY_INFO["cameras"]}
-    return encode(InferRequest(id=rid, robot="arm", model="toy-a", images=images,
+    return encode(InferRequest(id=rid, robot="arm", model=model, images=images,
                                state=np.zeros(TOY_INFO["state_dim"], np.float32)))
+
+
+def dealer(ctx: zmq.Context, identity: bytes, address: str) -> zmq.Socket:
+    """A stand-in executor (on the router's backend) or robot (on its front end) under ``identity``."""
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.IDENTITY, identity)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(address)
+    return sock
+
+
+def forward_r1(ctx: zmq.Context, cfg, executor: bytes, model: str, socks: list) -> tuple[zmq.Socket, zmq.Socket]:
+    """A stand-in ``executor`` says hello to the router, and robot "arm" sends it request r1 for ``model``;
+    returns (executor, robot) with r1 in flight at the executor. Both sockets go into ``socks``."""
+    ex = dealer(ctx, executor, cfg.router.backend)
+    ex.send(b"")
+    socks.append(ex)
+    arm = dealer(ctx, b"arm", cfg.router.bind)
+    socks.append(arm)
+    time.sleep(0.2)
+    arm.send_multipart(request("r1", model=model))
+    assert ex.poll(3000), "not forwarded"
+    robot, *body = ex.recv_multipart()
+    assert robot == b"arm" and decode(body).id == "r1"
+    return ex, arm
 
 
 @dataclass
@@ -63,9 +88,10 @@ class Stack:
 
 
 @contextmanager
-def stack(tmp_path, hold: threading.Event | None = None) -> Iterator[Stack]:
+def stack(tmp_path, hold: threading.Event | None = None, heartbeat_s: float = 0.2) -> Iterator[Stack]:
     """``hold``, when given, holds the router's loop whenever it is cleared (no table polls meanwhile)."""
     path, data = cluster_config(tmp_path)
+    data["control"]["heartbeat_s"] = heartbeat_s
     plane = start_control_plane(path, data)
     cfg = plane[0]
     ctx = zmq.Context()
@@ -105,16 +131,10 @@ def test_a_restarted_control_planes_empty_table_is_not_installed(tmp_path):
                 "the router did not install the table"
             served = router.routing.table
 
-            ex0 = ctx.socket(zmq.DEALER)
-            ex0.setsockopt(zmq.IDENTITY, b"ex0")
-            ex0.setsockopt(zmq.LINGER, 0)
-            ex0.connect(cfg.router.backend)
+            ex0 = dealer(ctx, b"ex0", cfg.router.backend)
             ex0.send(b"")
             socks.append(ex0)
-            arm = ctx.socket(zmq.DEALER)
-            arm.setsockopt(zmq.IDENTITY, b"arm")
-            arm.setsockopt(zmq.LINGER, 0)
-            arm.connect(cfg.router.bind)
+            arm = dealer(ctx, b"arm", cfg.router.bind)
             socks.append(arm)
             time.sleep(0.2)
 
@@ -175,3 +195,106 @@ def test_the_restarted_control_planes_table_is_installed_when_the_router_never_s
         assert st.register("ex1", "i1")["version"] == 1
         running.set()
         assert wait_for(lambda: router.routing.table.routes.get("toy-a") == ["ex1"], 5), router.routing.table
+
+
+def test_a_restarted_control_plane_holds_its_table_until_the_executors_are_back(tmp_path):
+    """After a control-plane restart the executors that kept running register again one by one, each on its
+    next heartbeat. The new plane published a table at the first registration, without the others: the
+    router dropped them from its routes and failed the requests they were computing. Now the plane holds
+    its table back until every configured executor is back (or a few heartbeat intervals have passed)."""
+    with stack(tmp_path, heartbeat_s=2.0) as st:  # the plane holds its table for up to 6 s after it starts
+        cfg, ctx, router = st.plane[0], st.ctx, st.router
+        socks = []
+        try:
+            st.register("ex0", "i0", models=("toy-a",))
+            st.register("ex1", "i1", models=("toy-b",))
+            assert wait_for(lambda: router.routing.table.routes == {"toy-a": ["ex0"], "toy-b": ["ex1"]}, 5), \
+                router.routing.table
+            ex1, arm = forward_r1(ctx, cfg, b"ex1", "toy-b", socks)
+
+            # The control plane restarts while ex1 computes r1; ex0 registers again at once, ex1 a moment later.
+            st.restart_plane()
+            st.register("ex0", "i0", models=("toy-a",))
+            assert wait_for(st.router_polled, 5), "the router never polled the new control plane"
+            time.sleep(0.5)  # a few more polls
+            assert router.routing.table.routes.get("toy-b") == ["ex1"], router.routing.table
+            assert not arm.poll(100), f"r1 was failed: {decode(arm.recv_multipart())}"
+            status = control_status(st.address, 1, ctx)
+            assert status is not None and status["settling"] is True
+
+            st.register("ex1", "i1", models=("toy-b",))
+            # Every configured executor is back: the new plane's table goes out at once, not after the hold.
+            assert wait_for(lambda: router.routing.table.version == 2, 1.5), router.routing.table
+            assert router.routing.table.routes == {"toy-a": ["ex0"], "toy-b": ["ex1"]}
+            ex1.send_multipart([b"arm", *encode(InferReply(id="r1", model="toy-b", actions=np.zeros((2, 2), np.float32)))])
+            assert arm.poll(2000), "the answer to r1 did not reach the robot"
+            assert isinstance(decode(arm.recv_multipart()), InferReply)
+        finally:
+            for sock in socks:
+                sock.close(linger=0)
+
+
+def test_a_restarted_control_plane_publishes_without_an_executor_that_does_not_come_back(tmp_path):
+    """The hold is bounded: an executor that does not register again within it is gone."""
+    with stack(tmp_path, heartbeat_s=0.5) as st:  # a hold of 1.5 s
+        router = st.router
+        st.register("ex0", "i0", models=("toy-a",))
+        st.register("ex1", "i1", models=("toy-b",))
+        assert wait_for(lambda: router.routing.table.routes == {"toy-a": ["ex0"], "toy-b": ["ex1"]}, 5)
+        st.restart_plane()
+        started = time.monotonic()
+        st.register("ex0", "i0", models=("toy-a",))
+        assert wait_for(lambda: router.routing.table.routes.get("toy-b") == [], 5), router.routing.table
+        assert time.monotonic() - started >= 1.0, "published before the hold was over"
+        assert router.routing.table.routes.get("toy-a") == ["ex0"]
+        status = control_status(st.address, 1, st.ctx)
+        assert status is not None and status["settling"] is False
+
+
+def test_a_restarted_control_plane_also_waits_for_the_replicas_the_router_routes_to(tmp_path):
+    """Replicas scaled out beside the config (docker compose --scale) are known to a restarted control plane
+    only from the router, which names the executors of the table it kept: the plane published as soon as the
+    configured executors were back, and the router failed the replica's requests in flight."""
+    with stack(tmp_path, heartbeat_s=2.0) as st:  # a hold of up to 6 s
+        cfg, ctx, router = st.plane[0], st.ctx, st.router
+        socks = []
+        try:
+            st.register("ex0", "i0", models=("toy-b",))
+            st.register("ex1", "i1", models=("toy-b",))
+            st.register("ex9", "i9", models=("toy-a",))  # a replica: not in the config
+            assert wait_for(lambda: router.routing.table.routes.get("toy-a") == ["ex9"], 5), router.routing.table
+            _, arm = forward_r1(ctx, cfg, b"ex9", "toy-a", socks)
+
+            st.restart_plane()
+            assert wait_for(st.router_polled, 5), "the router never polled the new control plane"
+            st.register("ex0", "i0", models=("toy-b",))
+            st.register("ex1", "i1", models=("toy-b",))  # every configured executor is back, the replica not yet
+            time.sleep(0.5)
+            assert not arm.poll(100), f"r1 was failed: {decode(arm.recv_multipart())}"
+            assert router.routing.table.routes.get("toy-a") == ["ex9"], router.routing.table
+            st.register("ex9", "i9", models=("toy-a",))
+            assert wait_for(lambda: router.routing.table.routes == {"toy-a": ["ex9"], "toy-b": ["ex0", "ex1"]}, 1.5), \
+                router.routing.table
+            assert not arm.poll(100), "r1 was failed"
+        finally:
+            for sock in socks:
+                sock.close(linger=0)
+
+
+def test_an_executor_that_withdraws_while_the_plane_holds_its_table_is_routed_nothing_new_at_once(tmp_path):
+    """An executor that shuts down drains itself and waits a few seconds (ExecutorIO.WITHDRAW_ACK_S) for the
+    router to route by a table without it. A plane holding its first table sent none, so the executor left
+    while the router still routed to it. A drain (or any change) now ends the hold."""
+    with stack(tmp_path, heartbeat_s=2.0) as st:  # a hold of up to 6 s, longer than the executor waits
+        router = st.router
+        st.register("ex0", "i0", models=("toy-a",))
+        st.register("ex1", "i1", models=("toy-b",))
+        assert wait_for(lambda: router.routing.table.routes.get("toy-a") == ["ex0"], 5)
+        st.restart_plane()
+        st.register("ex0", "i0", models=("toy-a",))  # ex1 does not come back
+        assert wait_for(st.router_polled, 5)
+        reply = control_request(st.address, "drain", timeout_s=2, context=st.ctx, executor="ex0")
+        assert reply is not None and reply["kind"] == "ok", reply
+        assert wait_for(lambda: (control_status(st.address, 1, st.ctx) or {}).get("router", {}).get("version")
+                        == reply["version"], 2.0), "the router did not take the table without ex0"
+        assert "ex0" not in router.routing.table.routes.get("toy-a", []), router.routing.table

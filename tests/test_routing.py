@@ -43,6 +43,22 @@ def test_new_solve_keeps_pins_that_still_fit():
     assert all(after[i] == "g0" for i in first if first[i] == "g0")
 
 
+def test_a_silent_robot_gives_its_place_in_the_quota_back():
+    """A robot that left for good kept its place in its executor's quota until the next solve; the robots
+    that came in meanwhile were sent beyond the quotas (to the least-loaded executor, here the one the
+    solver gave no A robots)."""
+    r = Routing()
+    r.update(table(quotas={"A": {"g0": 2}}, limits={"A": 4}))
+    assert [r.candidates("A", name, now=0.0)[0] for name in (b"a0", b"a1")] == ["g0", "g0"]
+    r.candidates("A", b"a1", now=50.0)  # a1 keeps asking, a0 left
+    assert r.release_idle(now=70.0, idle_s=60.0) == 1
+    assert r.candidates("A", b"a2", now=70.0)[0] == "g0", "the newcomer did not get a0's place"
+    assert r.assigned[("A", "g0")] == 2
+    # a0 comes back: g0's places are taken now, so it goes where an extra robot goes.
+    assert r.candidates("A", b"a0", now=71.0)[0] == "g1"
+    assert r.release_idle(now=100.0, idle_s=60.0) == 0
+
+
 def test_round_robin_without_assignment():
     r = Routing()
     r.update(table())

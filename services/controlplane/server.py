@@ -168,6 +168,7 @@ class ControlPlane:
                                    "was changed: " + "; ".join(fixed))
             steps = plan_steps(st.cfg, new, st)
             st.replace_config(new)
+            st.settle()
             self.rollout = Rollout(steps)
             log.info("apply: new desired state, table v%d; executors to reload: %s", st.table.version,
                      [s.executor for s in steps])
@@ -182,6 +183,7 @@ class ControlPlane:
             ok = st.set_drained(name, kind == "drain")
         if not ok:
             return self._error(peer, ControlError.UNKNOWN_EXECUTOR, f"no executor named {name!r} is registered")
+        st.settle()
         log.info("%s %s (table v%d)", "drained" if kind == "drain" else "resumed", name, st.table.version)
         self._reply(peer, "ok", version=st.table.version)
 
@@ -246,6 +248,7 @@ class ControlPlane:
                 self._reply(peer, "reregister")
         elif kind == "deregister":
             name = _name(msg, "executor")
+            st.settle()
             st.deregister(name)
             log.info("executor %s left (table v%d)", name, st.table.version)
         elif kind == "table_get":
@@ -256,7 +259,15 @@ class ControlPlane:
             if msg.get("role") == "router":
                 st.router_seen = time.monotonic()
                 st.router_version = version
-            newer = version != st.table.version
+                # A router reporting a table (version > 0) to a plane that has published none has not yet
+                # noticed the restart and names no executors: only its next poll (-1, or 0 without a table) counts.
+                st.router_heard = st.router_heard or version <= 0
+                routed = msg.get("executors")
+                if isinstance(routed, list):  # read only while the plane settles
+                    st.awaited.update(name for name in routed if isinstance(name, str) and name)
+            # While the plane settles (state.SETTLE_HEARTBEATS) it has no table to offer: a router keeps the
+            # one it routes by, and the executors it routes to register again meanwhile.
+            newer = version != st.table.version and st.settled()
             self._reply(peer, "table", table=st.table.to_wire() if newer else None)
         elif kind == "status":
             status = st.status()

@@ -13,6 +13,13 @@ from shared.protocol import ModelInfo
 
 log = logging.getLogger("robion.control")
 
+# How long a control plane that has just started holds back its routing table, at most, in heartbeat
+# intervals. After a restart of the control plane, the executors that kept running learn of it from
+# their next heartbeat (answered "reregister") and register again within about one interval. A table
+# published before they have would drop them from the router's routes and fail the requests they hold;
+# the router keeps the old plane's table meanwhile (ClusterState.settled says when the hold ends early).
+SETTLE_HEARTBEATS = 3
+
 
 def valid_limit(value: object) -> bool:
     """A robot limit C_i is a positive integer, as in the config; msgpack true is not an integer here."""
@@ -50,6 +57,28 @@ class ClusterState:
         # registry entries: an executor that misses its heartbeats or restarts comes back as a new
         # entry, and a placement change ends its own drain; neither is the operator's resume.
         self.drained: set[str] = set()
+        self.started = time.monotonic()
+        self._settled = False
+        self.router_heard = False  # a router has asked for a table since this plane started
+        # Executors a router still routes to by an earlier control plane's table (it names them while its
+        # table outlives that plane): replicas scaled out beside the config are known only this way.
+        self.awaited: set[str] = set()
+
+    def settled(self, now: float | None = None) -> bool:
+        """Whether the routing table may be published. It is once a router has asked for one and every
+        executor configured or named by the router (``awaited``) has registered, once SETTLE_HEARTBEATS
+        heartbeat intervals have passed since this control plane started, or once ``settle`` was called."""
+        if not self._settled:
+            now = now or time.monotonic()
+            expected = {e.name for e in self.cfg.executors} | self.awaited
+            everyone = self.router_heard and expected <= set(self.executors)
+            self._settled = everyone or now - self.started >= SETTLE_HEARTBEATS * self.cfg.control.heartbeat_s
+        return self._settled
+
+    def settle(self) -> None:
+        """End the hold now: a drain, resume, deregistration or new config must reach the router at once (an
+        executor that withdraws waits only a few seconds for the router to stop routing to it)."""
+        self._settled = True
 
     @property
     def timeout_s(self) -> float:
@@ -184,6 +213,7 @@ class ClusterState:
             "limits": {m.name: m.limit if m.limit is not None else self.measured_limits.get(m.name) for m in self.cfg.models},
             "router": {"version": self.router_version,
                        "last_seen_s": round(now - self.router_seen, 3) if self.router_seen else None},
+            "settling": not self.settled(now),
             "ready": (all(n in self.executors for n in expected) and self.router_version == self.table.version
                       and self.router_seen > 0 and now - self.router_seen < 2.0),
         }

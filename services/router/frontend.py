@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import zmq
 
-from services.router.routing import Routing
+from services.router.routing import PIN_IDLE_S, Routing
 from shared import control
 from shared.config import ClusterConfig, dial_address
 from shared.control import RoutingTable, TableError
@@ -28,6 +28,7 @@ log = logging.getLogger("robion.router")
 MAX_IN_FLIGHT = 65536
 MAX_EXECUTOR_INSTANCES = 4096  # executor names whose process token is remembered (see _executor_hello)
 TABLE_POLL_S = 0.1
+PIN_SWEEP_S = 5.0  # how often silent robots' pins are released (routing.PIN_IDLE_S)
 SHUTDOWN_LINGER_MS = 1000  # at shutdown, how long the last answers may take to leave
 WARN_EVERY_S = 5.0  # refusals a peer can trigger at will are logged at most this often, with a count
 
@@ -103,6 +104,7 @@ class Router:
         self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
         self._last_table_poll = 0.0
         self._last_sweep = 0.0
+        self._last_pin_sweep = time.monotonic()
         self._too_many_frames = RateLimitedWarning()
         self._executor_full = RateLimitedWarning()
         self._bad_hello = RateLimitedWarning()
@@ -127,13 +129,23 @@ class Router:
                 try:
                     # A kept table of a plane that restarted is no version of the new plane's: report none (-1),
                     # or a table of the new plane numbered like the kept one would never be sent.
-                    version = -1 if self._table_outlived_plane else self.routing.table.version
-                    self.ctl.send(control.pack("table_get", version=version, role="router"), zmq.NOBLOCK)
+                    # Its executors are named then too: a restarted plane holds its first table until they are
+                    # back, and replicas scaled out beside the config are known to it only this way.
+                    if self._table_outlived_plane:
+                        ask = {"version": -1, "executors": list(self.routing.table.executors)}
+                    else:
+                        ask = {"version": self.routing.table.version}
+                    self.ctl.send(control.pack("table_get", role="router", **ask), zmq.NOBLOCK)
                 except zmq.Again:
                     pass  # control plane unreachable or not reading: the next poll asks again
             if now - self._last_sweep >= 0.1:
                 self._last_sweep = now
                 self._expire(now)
+            if now - self._last_pin_sweep >= PIN_SWEEP_S:
+                self._last_pin_sweep = now
+                released = self.routing.release_idle(now)
+                if released:
+                    log.info("released the executor pins of %d robots silent for %.0f s", released, PIN_IDLE_S)
             for sock, _ in poller.poll(50):
                 if sock is self.ctl_events:
                     self._control_connected()

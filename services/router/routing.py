@@ -8,11 +8,16 @@ requests are spread round-robin.
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 
 from shared.control import RoutingTable
 
 MAX_PINNED_ROBOTS = 100_000
+# A robot silent this long gives its place in an executor's quota back (release_idle). Robots call
+# several times a second; one that left for good used to hold its place until the next solve, and the
+# robots that came in meanwhile were sent beyond the quotas, to the least-loaded executor.
+PIN_IDLE_S = 60.0
 
 
 class Routing:
@@ -21,6 +26,7 @@ class Routing:
         self._next: dict[str, int] = {}
         self.pins: dict[tuple[bytes, str], str] = {}  # (robot, model) -> executor
         self.assigned: Counter[tuple[str, str]] = Counter()  # (model, executor) -> pinned robots
+        self.pin_used: dict[tuple[bytes, str], float] = {}  # (robot, model) -> when it last asked
 
     def update(self, table: RoutingTable) -> set[str]:
         """Swap in a newer table in one assignment; returns executors that are gone (not merely draining).
@@ -39,9 +45,10 @@ class Routing:
                 pins[(robot, model)] = ex
                 counts[(model, ex)] += 1
         self.pins, self.assigned = pins, counts
+        self.pin_used = {k: t for k, t in self.pin_used.items() if k in pins}
         return before - after
 
-    def candidates(self, model: str, robot: bytes = b"") -> list[str]:
+    def candidates(self, model: str, robot: bytes = b"", now: float | None = None) -> list[str]:
         """Executors to try for ``model``, the chosen one first; empty when none hosts it."""
         execs = self.table.routes.get(model, [])
         if not execs:
@@ -53,6 +60,7 @@ class Routing:
         chosen = self.pins.get((robot, model))
         if chosen not in execs:
             chosen = self._pin(model, robot, execs)
+        self.pin_used[(robot, model)] = time.monotonic() if now is None else now
         return [chosen] + [e for e in execs if e != chosen]
 
     def _pin(self, model: str, robot: bytes, execs: list[str]) -> str:
@@ -64,9 +72,21 @@ class Routing:
         if len(self.pins) >= MAX_PINNED_ROBOTS:
             self.pins.clear()
             self.assigned.clear()
+            self.pin_used.clear()
         self.pins[(robot, model)] = best
         self.assigned[(model, best)] += 1
         return best
+
+    def release_idle(self, now: float, idle_s: float = PIN_IDLE_S) -> int:
+        """Unpin the robots that have not asked for ``idle_s``; returns how many. One that comes back is
+        pinned again like a new robot."""
+        idle = [k for k, t in self.pin_used.items() if now - t > idle_s]
+        for key in idle:
+            del self.pin_used[key]
+            ex = self.pins.pop(key, None)
+            if ex is not None:
+                self.assigned[(key[1], ex)] -= 1
+        return len(idle)
 
     def _load(self, executor: str) -> float:
         limits = self.table.limits
