@@ -9,8 +9,8 @@ executor -> control plane: register {executor, device, instance, models: {name: 
 router   -> control plane: table_get {version, role, executors?}
                                                      -> table {table: {version, models, routes, ...} or None}
                            (None: nothing newer, or a just-started plane holding its first table while the
-                           executors that outlived its restart register again; a router whose table is an
-                           earlier plane's reports version -1 and names that table's executors)
+                           executors that outlived its restart register again; after each (re)connect to
+                           the control plane a router reports version -1 and names its table's executors)
 anyone   -> control plane: status                    -> status {executors, table, router, expected, limits,
                                                                 settling, ready, rollout}
 operator -> control plane: apply {config}            -> applied {steps, version}

@@ -81,6 +81,16 @@ class Stack:
         assert reply is not None and reply["kind"] == "registered", reply
         return reply
 
+    def routed(self, placement: dict[str, str]) -> None:
+        """Register each executor ({name: model}, instance "i" + name) and wait until the router routes by it."""
+        for name, model in placement.items():
+            self.register(name, "i" + name, models=(model,))
+        want: dict[str, list[str]] = {}
+        for name, model in placement.items():
+            want.setdefault(model, []).append(name)
+        assert wait_for(lambda: all(self.router.routing.table.routes.get(m) == e for m, e in want.items()), 5), \
+            self.router.routing.table
+
     def router_polled(self) -> bool:
         """The control plane has heard a table poll from the router."""
         status = control_status(self.address, 1, self.ctx) or {}
@@ -259,10 +269,7 @@ def test_a_restarted_control_plane_also_waits_for_the_replicas_the_router_routes
         cfg, ctx, router = st.plane[0], st.ctx, st.router
         socks = []
         try:
-            st.register("ex0", "i0", models=("toy-b",))
-            st.register("ex1", "i1", models=("toy-b",))
-            st.register("ex9", "i9", models=("toy-a",))  # a replica: not in the config
-            assert wait_for(lambda: router.routing.table.routes.get("toy-a") == ["ex9"], 5), router.routing.table
+            st.routed({"ex0": "toy-b", "ex1": "toy-b", "ex9": "toy-a"})  # ex9: a replica, not in the config
             _, arm = forward_r1(ctx, cfg, b"ex9", "toy-a", socks)
 
             st.restart_plane()
@@ -298,3 +305,73 @@ def test_an_executor_that_withdraws_while_the_plane_holds_its_table_is_routed_no
         assert wait_for(lambda: (control_status(st.address, 1, st.ctx) or {}).get("router", {}).get("version")
                         == reply["version"], 2.0), "the router did not take the table without ex0"
         assert "ex0" not in router.routing.table.routes.get("toy-a", []), router.routing.table
+
+
+def test_a_departure_during_the_hold_does_not_end_it(tmp_path):
+    """Any deregister ended the hold, even one from an executor the new plane never registered (one stopped
+    during its start-up deregisters too): the table went out without the executors still on their way back,
+    and the router failed their requests in flight."""
+    with stack(tmp_path, heartbeat_s=2.0) as st:  # a hold of up to 6 s
+        cfg, ctx, router = st.plane[0], st.ctx, st.router
+        socks = []
+        try:
+            st.routed({"ex0": "toy-a", "ex1": "toy-b", "ex9": "toy-a"})
+            _, arm = forward_r1(ctx, cfg, b"ex1", "toy-b", socks)
+            st.restart_plane()
+            assert wait_for(st.router_polled, 5)
+            st.register("ex0", "i0", models=("toy-a",))
+            assert control_request(st.address, "deregister", timeout_s=0.3, context=ctx, executor="ex9") is None
+            time.sleep(0.8)  # past the routers' grace: only ex1 is awaited now
+            assert (control_status(st.address, 1, ctx) or {}).get("settling") is True
+            assert not arm.poll(100), f"r1 was failed: {decode(arm.recv_multipart())}"
+            st.register("ex1", "i1", models=("toy-b",))
+            assert wait_for(lambda: router.routing.table.routes == {"toy-a": ["ex0"], "toy-b": ["ex1"]}, 1.5), \
+                router.routing.table
+        finally:
+            for sock in socks:
+                sock.close(linger=0)
+
+
+def hold_state(tmp_path, heartbeat_s: float = 100.0):
+    from services.controlplane.state import ClusterState
+    from shared.config import load_config
+
+    path, data = cluster_config(tmp_path)
+    data["control"]["heartbeat_s"] = heartbeat_s
+    path.write_text(__import__("yaml").safe_dump(data))
+    return ClusterState(load_config(path))
+
+
+def test_every_router_that_noticed_the_restart_names_its_executors_within_the_grace(tmp_path):
+    """With two routers, the first to poll decided: a fresh one naming nobody ended the hold as soon as the
+    configured executors were back, before the router that kept a table named its replica."""
+    from services.controlplane.state import ROUTERS_GRACE_S
+    from shared.protocol import ModelInfo
+
+    st = hold_state(tmp_path)
+    info = {"toy-a": ModelInfo.from_wire(TOY_INFO)}
+    t0 = st.started
+    st.register("ex0", "cpu", info, now=t0)
+    st.register("ex1", "cpu", info, now=t0)
+    st.hear_router(-1, [], now=t0 + 0.1)  # a fresh router
+    assert not st.settled(t0 + 0.2)
+    st.hear_router(-1, ["ex0", "ex1", "ex9"], now=t0 + 0.3)  # the router that kept a table, a replica in it
+    assert not st.settled(t0 + 0.1 + ROUTERS_GRACE_S + 0.1), "published without the replica"
+    st.register("ex9", "cpu", info, now=t0 + 1.0)
+    assert st.settled(t0 + 1.0)
+
+
+def test_the_names_routers_add_to_the_hold_are_bounded(tmp_path):
+    """Every table_get added its names for good, settled or not, up to 2**20 a message: the plane's memory."""
+    from services.controlplane.state import MAX_AWAITED
+
+    st = hold_state(tmp_path)
+    st.hear_router(-1, [f"ex{i}" for i in range(MAX_AWAITED + 10)] + ["x" * 300, 7, None], now=st.started)
+    assert len(st.awaited) == MAX_AWAITED and all(isinstance(n, str) and len(n) <= 255 for n in st.awaited)
+    st.hear_router(-1, ["more"], now=st.started)
+    assert "more" not in st.awaited
+    st.settle()
+    before = set(st.awaited)
+    st.hear_router(-1, ["late"], now=st.started)
+    assert st.awaited == before
+    assert st.settled()

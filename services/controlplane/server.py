@@ -248,7 +248,6 @@ class ControlPlane:
                 self._reply(peer, "reregister")
         elif kind == "deregister":
             name = _name(msg, "executor")
-            st.settle()
             st.deregister(name)
             log.info("executor %s left (table v%d)", name, st.table.version)
         elif kind == "table_get":
@@ -259,12 +258,7 @@ class ControlPlane:
             if msg.get("role") == "router":
                 st.router_seen = time.monotonic()
                 st.router_version = version
-                # A router reporting a table (version > 0) to a plane that has published none has not yet
-                # noticed the restart and names no executors: only its next poll (-1, or 0 without a table) counts.
-                st.router_heard = st.router_heard or version <= 0
-                routed = msg.get("executors")
-                if isinstance(routed, list):  # read only while the plane settles
-                    st.awaited.update(name for name in routed if isinstance(name, str) and name)
+                st.hear_router(version, msg.get("executors"))
             # While the plane settles (state.SETTLE_HEARTBEATS) it has no table to offer: a router keeps the
             # one it routes by, and the executors it routes to register again meanwhile.
             newer = version != st.table.version and st.settled()

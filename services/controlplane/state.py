@@ -19,6 +19,10 @@ log = logging.getLogger("robion.control")
 # published before they have would drop them from the router's routes and fail the requests they hold;
 # the router keeps the old plane's table meanwhile (ClusterState.settled says when the hold ends early).
 SETTLE_HEARTBEATS = 3
+# After the first router's poll, how long the hold waits at least for other routers to name their executors.
+ROUTERS_GRACE_S = 0.5
+MAX_AWAITED = 4096  # executor names routers may add to the hold (each at most MAX_NAME_CHARS)
+MAX_NAME_CHARS = 255
 
 
 def valid_limit(value: object) -> bool:
@@ -59,25 +63,42 @@ class ClusterState:
         self.drained: set[str] = set()
         self.started = time.monotonic()
         self._settled = False
-        self.router_heard = False  # a router has asked for a table since this plane started
+        self.router_heard: float | None = None  # when a router that noticed the restart first asked for a table
         # Executors a router still routes to by an earlier control plane's table (it names them while its
         # table outlives that plane): replicas scaled out beside the config are known only this way.
         self.awaited: set[str] = set()
+        self.departed: set[str] = set()  # executors that deregistered during the hold: not waited for
 
     def settled(self, now: float | None = None) -> bool:
-        """Whether the routing table may be published. It is once a router has asked for one and every
-        executor configured or named by the router (``awaited``) has registered, once SETTLE_HEARTBEATS
-        heartbeat intervals have passed since this control plane started, or once ``settle`` was called."""
+        """Whether the routing table may be published. It is once a router has asked for one (and other
+        routers have had ROUTERS_GRACE_S to) and every executor configured or named by a router
+        (``awaited``) has registered or left, once SETTLE_HEARTBEATS heartbeat intervals have passed since
+        this control plane started, or once ``settle`` was called."""
         if not self._settled:
             now = now or time.monotonic()
-            expected = {e.name for e in self.cfg.executors} | self.awaited
-            everyone = self.router_heard and expected <= set(self.executors)
+            expected = ({e.name for e in self.cfg.executors} | self.awaited) - self.departed
+            everyone = (self.router_heard is not None and now - self.router_heard >= ROUTERS_GRACE_S
+                        and expected <= set(self.executors))
             self._settled = everyone or now - self.started >= SETTLE_HEARTBEATS * self.cfg.control.heartbeat_s
         return self._settled
 
+    def hear_router(self, version: int, executors: object, now: float | None = None) -> None:
+        """A router's table poll during the hold: one reporting no table of this plane's (-1, or 0 without
+        a table) has noticed the restart, and names the executors it still routes to (a list of names)."""
+        if self._settled or version > 0:  # > 0: it has not noticed yet, and names nobody
+            return
+        if self.router_heard is None:
+            self.router_heard = now or time.monotonic()
+        if isinstance(executors, list):
+            for name in executors[:MAX_AWAITED]:
+                if len(self.awaited) >= MAX_AWAITED:
+                    break
+                if isinstance(name, str) and 0 < len(name) <= MAX_NAME_CHARS:
+                    self.awaited.add(name)
+
     def settle(self) -> None:
-        """End the hold now: a drain, resume, deregistration or new config must reach the router at once (an
-        executor that withdraws waits only a few seconds for the router to stop routing to it)."""
+        """End the hold now: a drain, resume or new config must reach the router at once (an executor that
+        shuts down drains itself, then waits only a few seconds for the router to stop routing to it)."""
         self._settled = True
 
     @property
@@ -149,6 +170,8 @@ class ClusterState:
         return True
 
     def deregister(self, name: str) -> None:
+        if not self._settled:
+            self.departed.add(name)
         if self.executors.pop(name, None) is not None:
             self._rebuild()
 
