@@ -4,11 +4,23 @@ edited copies of wire messages."""
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
 
 import yaml
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def executor_exit(path: Path, *args: str, env: dict | None = None, timeout_s: float = 120) -> subprocess.CompletedProcess:
+    """Run the executor process (``--name ex0`` of the config at ``path``, then ``args``) until it exits, as
+    one that refuses its start-up does; its stderr is captured."""
+    return subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0", *args],
+                          capture_output=True, text=True, cwd=ROOT, env=env, timeout=timeout_s)
 
 
 def changed(message: dict, changes: dict) -> dict:

@@ -16,7 +16,7 @@ import yaml
 from services.executor.hosting import ModelStore
 from services.executor.limits import device_name, limit_key, measure_limits
 from shared.config import load_config
-from tests.helpers import cluster_config
+from tests.helpers import cluster_config, executor_exit
 
 CPU = torch.device("cpu")
 
@@ -65,14 +65,9 @@ def test_a_valid_cached_limit_is_reused(tmp_path):
 def test_a_bad_cpu_thread_count_stops_the_executor_with_the_variable_named(tmp_path, value):
     """ROBION_CPU_THREADS=abc ended the executor with a ValueError traceback (and 0 with torch's RuntimeError)."""
     import os
-    import subprocess
-    import sys
 
     path, _ = cluster_config(tmp_path)
-    env = {**os.environ, "ROBION_CPU_THREADS": value}
-    res = subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0"],
-                         capture_output=True, text=True, cwd=Path(__file__).resolve().parent.parent, env=env,
-                         timeout=120)
+    res = executor_exit(path, env={**os.environ, "ROBION_CPU_THREADS": value})
     assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
     assert "ROBION_CPU_THREADS" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
 
@@ -80,25 +75,17 @@ def test_a_bad_cpu_thread_count_stops_the_executor_with_the_variable_named(tmp_p
 @pytest.mark.parametrize("device", ["cuda1", "gpu:0", "cuda:x"])
 def test_a_bad_device_override_stops_the_executor_with_the_flag_named(tmp_path, device):
     """--device cuda1 ended the executor with torch's RuntimeError traceback; the config refuses the same value."""
-    import subprocess
-    import sys
-
     path, _ = cluster_config(tmp_path)
-    res = subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0",
-                          "--device", device], capture_output=True, text=True,
-                         cwd=Path(__file__).resolve().parent.parent, timeout=120)
+    res = executor_exit(path, "--device", device)
     assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
     assert "--device" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
 
 
-@pytest.mark.skipif(__import__("torch").cuda.device_count() > 0, reason="needs a host where cuda:0 is absent")
+@pytest.mark.skipif(torch.cuda.device_count() > 0, reason="needs a host where cuda:0 is absent")
 @pytest.mark.parametrize("where", ["override", "config", "interdisagg"])
 def test_an_absent_gpu_stops_the_executor_with_the_device_named(tmp_path, where):
     """cuda:0 on a host without a GPU (or cuda:7 on one with 4) passes the config's check, and the executor died
     with a traceback from torch's first CUDA call. It now exits 2 naming the device and what the host has."""
-    import subprocess
-    import sys
-
     extra: list[str] = []
     if where == "override":
         path, _ = cluster_config(tmp_path)
@@ -108,8 +95,7 @@ def test_an_absent_gpu_stops_the_executor_with_the_device_named(tmp_path, where)
     else:
         path, _ = cluster_config(tmp_path, engine={"kind": "interdisagg", "max_batch": 2,
                                                    "vlm_devices": "cpu", "action_devices": "0"})
-    res = subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0", *extra],
-                         capture_output=True, text=True, cwd=Path(__file__).resolve().parent.parent, timeout=120)
+    res = executor_exit(path, *extra)
     assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
     named = "engine.action_devices cuda:0" if where == "interdisagg" else "device cuda:0"
     assert named in res.stderr and "no CUDA GPU is visible" in res.stderr, res.stderr[-2000:]

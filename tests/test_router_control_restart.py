@@ -17,12 +17,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 import zmq
 
+from services.controlplane.state import MAX_AWAITED, ROUTERS_GRACE_S, ClusterState
 from services.router.frontend import Router
 from shared.cluster import control_request, control_status
-from shared.config import dial_address
-from shared.protocol import ErrorReply, InferReply, InferRequest, decode, encode
+from shared.config import dial_address, load_config
+from shared.protocol import ErrorReply, InferReply, InferRequest, ModelInfo, decode, encode
 from tests.helpers import TOY_INFO, cluster_config, start_control_plane, wait_for
 
 
@@ -333,21 +335,15 @@ def test_a_departure_during_the_hold_does_not_end_it(tmp_path):
 
 
 def hold_state(tmp_path, heartbeat_s: float = 100.0):
-    from services.controlplane.state import ClusterState
-    from shared.config import load_config
-
     path, data = cluster_config(tmp_path)
     data["control"]["heartbeat_s"] = heartbeat_s
-    path.write_text(__import__("yaml").safe_dump(data))
+    path.write_text(yaml.safe_dump(data))
     return ClusterState(load_config(path))
 
 
 def test_every_router_that_noticed_the_restart_names_its_executors_within_the_grace(tmp_path):
     """With two routers, the first to poll decided: a fresh one naming nobody ended the hold as soon as the
     configured executors were back, before the router that kept a table named its replica."""
-    from services.controlplane.state import ROUTERS_GRACE_S
-    from shared.protocol import ModelInfo
-
     st = hold_state(tmp_path)
     info = {"toy-a": ModelInfo.from_wire(TOY_INFO)}
     t0 = st.started
@@ -363,8 +359,6 @@ def test_every_router_that_noticed_the_restart_names_its_executors_within_the_gr
 
 def test_the_names_routers_add_to_the_hold_are_bounded(tmp_path):
     """Every table_get added its names for good, settled or not, up to 2**20 a message: the plane's memory."""
-    from services.controlplane.state import MAX_AWAITED
-
     st = hold_state(tmp_path)
     st.hear_router(-1, [f"ex{i}" for i in range(MAX_AWAITED + 10)] + ["x" * 300, 7, None], now=st.started)
     assert len(st.awaited) == MAX_AWAITED and all(isinstance(n, str) and len(n) <= 255 for n in st.awaited)
