@@ -110,3 +110,51 @@ def test_heartbeats_queued_behind_a_long_solve_do_not_expire_live_executors(tmp_
         sock.close(0)
         stop.set()
         t.join(30)
+
+
+def test_a_new_process_registers_while_a_stale_connection_holds_its_name(tmp_path):
+    """Executors connect to the control plane with their name as socket identity. While an old connection of
+    that name stays open (a hung process, a half-open TCP connection left by a crashed host), libzmq ignored the
+    new process's connection for its whole life: its register went unanswered and it never rejoined routing."""
+    import threading
+
+    import zmq
+
+    from services.controlplane.server import ControlPlane
+    from shared import control
+    from shared.cluster import control_status
+    from shared.config import load_config
+    from tests.helpers import TOY_INFO, cluster_config, wait_for
+
+    path, data = cluster_config(tmp_path)
+    data["control"].update(heartbeat_s=0.1, missed_heartbeats=3)
+    path.write_text(yaml.safe_dump(data))
+    address = load_config(path).control.bind
+    stop = threading.Event()
+    t = threading.Thread(target=ControlPlane(load_config(path)).run, args=(stop,), daemon=True)
+    t.start()
+    ctx = zmq.Context()
+
+    def executor_socket() -> zmq.Socket:
+        s = ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.LINGER, 0)
+        s.setsockopt(zmq.IDENTITY, b"ex1")  # as the executor's control socket
+        s.connect(address)
+        return s
+
+    def register(s: zmq.Socket, instance: str) -> dict | None:
+        s.send(control.pack("register", executor="ex1", device="cpu", instance=instance, models={"toy-a": TOY_INFO}))
+        return control.unpack(s.recv()) if s.poll(3000) else None
+
+    try:
+        old = executor_socket()
+        assert (register(old, "old") or {}).get("kind") == "registered"
+        # The old process hangs: its connection stays open and silent, and its entry expires.
+        assert wait_for(lambda: "ex1" not in control_status(address, 5)["executors"], 10)
+        new = executor_socket()
+        assert (register(new, "new") or {}).get("kind") == "registered"
+        assert "ex1" in control_status(address, 5)["executors"]
+    finally:
+        stop.set()
+        t.join(10)
+        ctx.destroy(0)

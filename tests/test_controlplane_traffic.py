@@ -117,3 +117,65 @@ def test_an_apply_that_fails_while_solving_changes_nothing(plane, monkeypatch):
     quotas = control_status(address, 5)["table"]["quotas"]
     assert {m: sum(q.values()) for m, q in quotas.items()} == {"toy-a": 4, "toy-b": 2}
     assert t.is_alive()
+
+
+def test_a_model_without_a_robot_limit_leaves_the_others_planned():
+    """One populated model with no limit (none configured, not measured yet, added by an apply) made
+    ``assign`` return no quotas at all: every model's robots went round-robin per request."""
+    from services.controlplane.state import ClusterState
+    from services.controlplane.traffic import assign
+    from shared.config import config_from_dict
+    from shared.protocol import ModelInfo
+
+    def cfg(b_limit):
+        b = {"name": "B", "arch": "toy", "robots": 2, **({"limit": b_limit} if b_limit else {})}
+        return config_from_dict({"models": [{"name": "A", "arch": "toy", "robots": 4, "limit": 4}, b],
+                                 "executors": [{"name": "ex0", "models": ["A"]}, {"name": "ex1", "models": ["A", "B"]}]})
+
+    placement = {"ex0": ["A"], "ex1": ["A", "B"]}
+    assert assign(cfg(4), placement).robots["A"] == {"ex0": 4}
+    q = assign(cfg(None), placement)
+    assert set(q.robots) == {"A"} and sum(q.robots["A"].values()) == 4 and q.limits == {"A": 4}, q  # B: round-robin
+    st = ClusterState(cfg(None))  # the same through the control plane's registry
+    info = ModelInfo.from_wire(INFO)
+    st.register("ex0", "cpu", {"A": info}, limits={}, instance="a")
+    st.register("ex1", "cpu", {"A": info, "B": info}, limits={}, instance="b")
+    assert set(st.table.quotas) == {"A"} and sum(st.table.quotas["A"].values()) == 4, st.table.quotas
+    assert st.table.limits == {"A": 4}, st.table.limits
+    st.register("ex1", "cpu", {"A": info, "B": info}, limits={"B": 3}, instance="b")  # B measured: planned too
+    assert set(st.table.quotas) == {"A", "B"} and sum(st.table.quotas["B"].values()) == 2, st.table.quotas
+
+
+def test_departed_replicas_leave_no_metric_series(tmp_path):
+    """Every executor name ever seen kept its robion_executor_up and robion_robots_assigned series (at 0):
+    docker-compose replicas register under container names that are new with every scale-out."""
+    from services.controlplane.server import ControlPlane
+    from shared.config import load_config
+    from shared.protocol import ModelInfo
+
+    path, data = cluster_config(tmp_path, models=models({"robots": 4, "limit": 4}, {}))
+    data["control"]["metrics_port"] = 0
+    path.write_text(yaml.safe_dump(data))
+    plane = ControlPlane(load_config(path))
+    try:
+        info = ModelInfo.from_wire(INFO)
+        for i in range(50):
+            name = f"replica-{i:02x}"
+            plane.state.register(name, "cpu", {"toy-a": info}, instance=name)
+            plane._update_metrics()
+            plane.state.deregister(name)
+            plane._update_metrics()
+        plane.state.register("ex0", "cpu", {"toy-a": info}, instance="x")
+        plane._update_metrics()
+        plane.state.deregister("ex0")
+        plane._update_metrics()
+
+        def samples(metric: str) -> dict:
+            return {tuple(s.labels.values()): s.value for m in plane.metrics.registry.collect() if m.name == metric
+                    for s in m.samples}
+
+        assert samples("robion_executor_up") == {("ex0",): 0.0}  # configured: still there, down
+        assert samples("robion_robots_assigned") == {("toy-a", "ex0"): 0.0}
+        assert plane._published == {"ex0"}
+    finally:
+        plane.sock.close(0)

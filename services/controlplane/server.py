@@ -58,6 +58,11 @@ class ControlPlane:
         self.ctx = context or zmq.Context.instance()
         self.sock = self.ctx.socket(zmq.ROUTER)
         self.sock.setsockopt(zmq.LINGER, 0)
+        # Executors connect with their name as identity. Without handover, libzmq ignores a new connection
+        # whose identity an open one holds (a hung old process, or a half-open TCP connection left by a
+        # crashed host), for as long as the new one lives: the restarted executor's registrations and
+        # heartbeats were dropped unread, and it never rejoined routing.
+        self.sock.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.sock.bind(cfg.control.bind)
         self.metrics = ControlMetrics()
         serve(self.metrics.registry, cfg.control.metrics_port)
@@ -105,8 +110,16 @@ class ControlPlane:
 
     def _update_metrics(self) -> None:
         live = set(self.state.executors)
+        # A configured executor that is down reads 0. A replica outside the config registers under a name of
+        # its own (docker-compose: its container's), new with every scale-out or redeploy: its series go once
+        # it has left, or they would pile up in this process and in Prometheus for good.
+        configured = {e.name for e in self.state.cfg.executors}
         for name in self._published - live:
-            self.metrics.executor_up.labels(name).set(0)
+            if name in configured:
+                self.metrics.executor_up.labels(name).set(0)
+            else:
+                self.metrics.executor_up.remove(name)
+                self._published.discard(name)
         for name in live:
             self.metrics.executor_up.labels(name).set(1)
         self._published |= live
@@ -117,7 +130,11 @@ class ControlPlane:
                 self.metrics.robots_assigned.labels(model, ex).set(n)
         published = {(m, e) for m, per in quotas.items() for e in per}
         for model, ex in self._assigned - published:
-            self.metrics.robots_assigned.labels(model, ex).set(0)
+            if ex in configured:
+                self.metrics.robots_assigned.labels(model, ex).set(0)
+                published.add((model, ex))  # kept (at 0) until the config drops the executor
+            else:
+                self.metrics.robots_assigned.remove(model, ex)
         self._assigned = published
         self.metrics.table_version.set(self.state.table.version)
 

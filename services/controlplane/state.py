@@ -113,6 +113,7 @@ class ClusterState:
         bad = {m: c for m, c in limits.items() if not valid_limit(c)}
         if bad:
             log.warning("executor %s reported robot limits that are not positive integers, ignored: %s", name, bad)
+        measured_before = dict(self.measured_limits)
         self.measured_limits.update({m: c for m, c in limits.items() if valid_limit(c)})
         self.described.update(models)
         old = self.executors.get(name)
@@ -122,7 +123,9 @@ class ClusterState:
         draining = old is not None and old.draining and old.instance == instance
         self.executors[name] = ExecutorState(name, device, models, now or time.monotonic(),
                                              draining=draining, instance=instance)
-        self._rebuild()
+        # A limit measured or changed since the last solve (a model's first measurement, one after a reload)
+        # re-solves the quotas even when the routes stay the same.
+        self._rebuild(force=self.measured_limits != measured_before)
 
     def set_draining(self, name: str, draining: bool) -> bool:
         """A placement change's drain of a registered executor (lifted when its step ends)."""

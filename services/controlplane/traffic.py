@@ -32,10 +32,13 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[s
         return Quotas({}, {})
     measured = measured or {}
     limit = {n: m.limit if m.limit is not None else measured.get(n) for n, m in demands.items()}
+    # A model without a limit (none configured, not measured yet, or added by an apply) cannot be planned:
+    # its robots are spread round-robin per request. The others keep their assignment; giving it up for
+    # the whole cluster took pinning and batching from every model because of one.
     missing = [n for n, c in limit.items() if c is None]
     if missing:
-        log.warning("no robot limit for %s: robots are spread round-robin per request", missing)
-        return Quotas({}, {})
+        log.warning("no robot limit for %s: their robots are spread round-robin per request; planning the "
+                    "other models without them", missing)
     executors = list(placement)
     hosts: dict[str, list[int]] = {}
     for j, name in enumerate(executors):
@@ -47,7 +50,7 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[s
     unhosted = [n for n in demands if n not in hosts]
     if unhosted:
         log.warning("no serving executor hosts %s: planning the other models without them", unhosted)
-    planned = [m for m in demands.values() if m.name in hosts]
+    planned = [m for m in demands.values() if m.name in hosts and limit[m.name] is not None]
     if not planned:
         return Quotas({}, {})
     try:
@@ -71,4 +74,4 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[s
         log.warning("traffic assignment exceeds GPU limits: %s", result.diagnosis)
     robots = {m: {executors[j]: n for j, n in per_gpu.items() if n} for m, per_gpu in result.assignment.items()}
     log.info("traffic assignment (%s, objective %s): %s", result.strategy, result.objective, robots)
-    return Quotas(robots, {n: int(c) for n, c in limit.items()}, result)
+    return Quotas(robots, {n: int(c) for n, c in limit.items() if c is not None}, result)
