@@ -317,3 +317,40 @@ def test_heartbeats_survive_the_telemetry_of_every_engine_kind(harness, engine):
     h.send(h.request("second"))
     h.wait_replies(["second"], timeout_s=10)
     assert getattr(h.replies.get("second"), "actions", None) is not None
+
+
+def test_replies_the_router_cannot_take_do_not_wedge_the_executor(harness):
+    """Replies went out with a blocking send. With the router gone and over ~1000 answers waiting (ZeroMQ's
+    high-water mark for the lost peer), the I/O thread blocked in that send for good: no heartbeats, no control
+    messages, and a stop was never seen. Now they wait in order and go out when a router takes them again."""
+    models = [{"name": n, "arch": "toy", "size": "tiny", "seed": 0, "slo_ms": 600_000} for n in ("toy-a", "toy-b")]
+    h = harness(control_plane=True, model_configs=models, engine={"kind": "monolithic", "max_batch": 1, "max_queue": 2000})
+    gate = threading.Event()
+    engine = h.slot.engine
+    step = engine.step
+    engine.step = lambda: (gate.wait(), step())[1]
+    n = 1200
+    for i in range(n):
+        h.send(h.request(i))
+    end = time.monotonic() + 30
+    while h.io.in_flight < n and time.monotonic() < end:
+        time.sleep(0.05)
+    assert h.io.in_flight == n
+    address = h.cfg.router.backend
+    h.router.close(linger=0)  # the router process dies
+    gate.set()
+    end = time.monotonic() + 30
+    while h.io.in_flight and time.monotonic() < end:
+        time.sleep(0.05)
+    assert h.io.in_flight == 0 and h.io._unsent, (h.io.in_flight, len(h.io._unsent))  # held, not blocked on
+    h.control_messages(0.1)
+    assert any(m.get("kind") == "heartbeat" for m in h.control_messages(1.0)), "the I/O loop stopped"
+    # A router on the same address (restarted) gets the held replies, each once, in order.
+    h.router = h.ctx.socket(zmq.ROUTER)
+    h.router.setsockopt(zmq.LINGER, 0)
+    h.router.bind(address)
+    h.collect(10.0)
+    ids = sorted(h.replies)
+    assert len(ids) >= n - 1000 and ids == list(range(n - len(ids), n)), (len(ids), ids[:3])
+    h.close()
+    assert not h.thread.is_alive()

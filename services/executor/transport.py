@@ -12,6 +12,7 @@ import queue
 import threading
 import time
 import uuid
+from collections import deque
 
 import numpy as np
 import zmq
@@ -26,6 +27,13 @@ from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError,
 from shared.service import connected_again
 
 log = logging.getLogger("robion.executor")
+
+# Replies the router's pipe could not take at once (the router is gone or restarting: ZeroMQ queues up to its
+# high-water mark, 1000 messages, for a peer that may come back) wait here, in order, and are sent as the pipe
+# frees up. Beyond this many the oldest are dropped: a restarted router knows none of their requests, and the
+# old one has answered them itself when they timed out.
+MAX_UNSENT_REPLIES = 4096
+
 
 def to_request(msg: InferRequest, served: ServedInput, envelope: bytes, arrival: float) -> Request:
     """Check a decoded request against the model's declared inputs and build the engine's Request."""
@@ -115,6 +123,8 @@ class ExecutorIO:
             self._sm_count = torch.cuda.get_device_properties(torch.device(device)).multi_processor_count
         self.ctx = context or zmq.Context.instance()
         self.results: queue.SimpleQueue[list[Result]] = queue.SimpleQueue()
+        self._unsent: deque[list] = deque()  # replies waiting for room in the router's pipe (MAX_UNSENT_REPLIES)
+        self.dropped_replies = 0
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
         self.metrics = metrics or ExecutorMetrics(name, device, {n: s.slo_s for n, s in self.served.items()})
 
@@ -205,6 +215,10 @@ class ExecutorIO:
                 except zmq.Again:
                     break
         self._send_results()
+        if self._unsent:
+            self._poller.modify(self.backend, zmq.POLLIN | zmq.POLLOUT)  # woken as the pipe frees up
+        else:
+            self._poller.modify(self.backend, zmq.POLLIN)
         if self.backend_events in ready and connected_again(self.backend_events):
             self._hello()  # the same instance again to a router that knows it changes nothing
         if self.backend in ready:
@@ -354,11 +368,41 @@ class ExecutorIO:
         self._reregister.set()
 
     def drain(self, timeout_s: float = 5.0) -> None:
-        """After the engine stopped: send every remaining result so no request goes unanswered."""
+        """After the engine stopped: send every remaining result so no request goes unanswered (within
+        ``timeout_s``: a router that is gone takes none of them, and a stop must not wait for it)."""
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
-            if not self._send_results():
+            if not self._send_results() and not self._unsent:
                 break
+            if self._unsent:
+                time.sleep(0.01)
+        if self._unsent:
+            log.warning("%d replies could not be sent (the router is not taking them)", len(self._unsent))
+
+    def _send_reply(self, frames: list) -> None:
+        """Hand a reply to the router's pipe without blocking. A blocking send to a router that is gone
+        (ZeroMQ queues for it up to the high-water mark, then waits) held the I/O thread for good: no
+        heartbeats, no control messages, and a stop was never seen."""
+        if not self._unsent:
+            try:
+                self.backend.send_multipart(frames, flags=zmq.NOBLOCK, copy=False)
+                return
+            except zmq.Again:
+                log.warning("the router is not taking replies (its pipe is full): holding them")
+        self._unsent.append(frames)
+        if len(self._unsent) > MAX_UNSENT_REPLIES:
+            self._unsent.popleft()
+            self.dropped_replies += 1
+            if self.dropped_replies % 1000 == 1:
+                log.warning("dropped %d replies the router did not take (oldest first)", self.dropped_replies)
+
+    def _flush_unsent(self) -> None:
+        while self._unsent:
+            try:
+                self.backend.send_multipart(self._unsent[0], flags=zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return
+            self._unsent.popleft()
 
     def close(self) -> None:
         # Leave the routing table now rather than after missed heartbeats.
@@ -411,6 +455,7 @@ class ExecutorIO:
                 self.metrics.sm_level.set(rec.sm_level if rec.sm_level is not None else self._sm_count)
 
     def _send_results(self) -> bool:
+        self._flush_unsent()
         sent = False
         while True:
             try:
@@ -421,7 +466,7 @@ class ExecutorIO:
             batches: dict[tuple[str, float], int] = {}
             for res in batch:
                 r = res.request
-                self.backend.send_multipart([r.envelope, *reply_frames(res, now)], copy=False)
+                self._send_reply([r.envelope, *reply_frames(res, now)])
                 self.in_flight -= 1
                 sent = True
                 if res.error is not None:
@@ -477,7 +522,7 @@ class ExecutorIO:
         cannot grow the number of series.
         """
         self.stats["errors"] += 1
-        self.backend.send_multipart([envelope, *error_frames(rid, code, message)], copy=False)
+        self._send_reply([envelope, *error_frames(rid, code, message)])
         model = header.get("model")
         if isinstance(model, str) and model in self.served:
             self.metrics.observe_result(model, code.value.lower(), time.monotonic() - arrival, 0, 0, 0)
