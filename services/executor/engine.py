@@ -33,6 +33,20 @@ class ServedModel:
     slo_s: float
 
 
+def timed_sink(queues: ModelQueues, sink: ResultSink) -> ResultSink:
+    """``sink`` that also tells ``queues`` each answered request's service time (``shed_late``).
+
+    It holds the queues, not the engine: an engine holding a closure over itself is a reference cycle, and
+    a stopped engine (its models, on a GPU their weights and graphs) then lived on until a full garbage
+    collection, through the reload that needed the memory."""
+    def deliver(results: list[Result]) -> None:
+        for r in results:
+            if r.actions is not None and r.admitted > 0:
+                queues.note_service(r.request.model, r.done - r.admitted)
+        sink(results)
+    return deliver
+
+
 class Engine:
     """Queues plus a loop; subclasses define one scheduling step."""
 
@@ -41,7 +55,7 @@ class Engine:
         self.cfg = cfg
         self.device = device
         self.queues = ModelQueues(list(models), cfg.max_queue, cfg.policy, cfg.shed_expired, cfg.shed_late)
-        self.on_results = self._timed(on_results) if cfg.shed_late else on_results
+        self.on_results = timed_sink(self.queues, on_results) if cfg.shed_late else on_results
         # Noise is drawn when a request arrives (seeded per model, in arrival order), off the
         # path between batches; a request may bring its own.
         self._noise_gens = {name: torch.Generator().manual_seed(cfg.seed) for name in models}
@@ -85,15 +99,6 @@ class Engine:
         pending = self.queues.close()
         if pending:
             self.on_results([Result(r, error=(ErrorCode.UNAVAILABLE, "executor is shutting down")) for r in pending])
-
-    def _timed(self, sink: ResultSink) -> ResultSink:
-        """``sink`` that also tells the queues each answered request's service time (``shed_late``)."""
-        def deliver(results: list[Result]) -> None:
-            for r in results:
-                if r.actions is not None and r.admitted > 0:
-                    self.queues.note_service(r.request.model, r.done - r.admitted)
-            sink(results)
-        return deliver
 
     def _report_expired(self, expired: list[Request]) -> None:
         if expired:
