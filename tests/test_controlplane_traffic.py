@@ -179,3 +179,25 @@ def test_departed_replicas_leave_no_metric_series(tmp_path):
         assert plane._published == {"ex0"}
     finally:
         plane.sock.close(0)
+
+
+def test_an_apply_drops_measured_limits_of_models_whose_rate_or_deadline_changed():
+    """The plane kept every limit an executor ever reported: after an apply that raised a model's rate it planned
+    with the limit measured at the old rate (at 5x the rate, about 5x too many robots per GPU)."""
+    import dataclasses
+
+    from services.controlplane.state import ClusterState
+    from shared.config import config_from_dict
+    from shared.protocol import ModelInfo
+
+    cfg = config_from_dict({"models": [{"name": "A", "arch": "toy", "robots": 4}, {"name": "B", "arch": "toy", "robots": 2}],
+                            "executors": [{"name": "ex0", "models": ["A", "B"]}]})
+    st = ClusterState(cfg)
+    info = ModelInfo.from_wire(INFO)
+    st.register("ex0", "cpu", {"A": info, "B": info}, limits={"A": 40, "B": 30}, instance="a")
+    assert st.table.limits == {"A": 40, "B": 30}
+    faster = dataclasses.replace(cfg, models=[dataclasses.replace(cfg.models[0], hz=10.0), cfg.models[1]])
+    st.replace_config(faster)
+    assert st.table.limits == {"B": 30}, st.table.limits  # A at 10 Hz: unmeasured until its executor says
+    st.register("ex0", "cpu", {"A": info, "B": info}, limits={"A": 8, "B": 30}, instance="a")
+    assert st.table.limits == {"A": 8, "B": 30}

@@ -16,7 +16,7 @@ import yaml
 from services.executor.hosting import ModelStore
 from services.executor.limits import device_name, limit_key, measure_limits
 from shared.config import load_config
-from tests.helpers import cluster_config, executor_exit
+from tests.helpers import cluster_config, executor_exit, free_ports
 
 CPU = torch.device("cpu")
 
@@ -100,3 +100,87 @@ def test_an_absent_gpu_stops_the_executor_with_the_device_named(tmp_path, where)
     named = "engine.action_devices cuda:0" if where == "interdisagg" else "device cuda:0"
     assert named in res.stderr and "no CUDA GPU is visible" in res.stderr, res.stderr[-2000:]
     assert "Traceback" not in res.stderr, res.stderr[-2000:]
+
+
+def test_a_reload_reports_the_limit_of_the_new_settings(tmp_path):
+    """A limit holds for the rate and deadline it was measured at. After a live apply changed a model's rate, the
+    reloaded executor registered again with its start-up limit (the old rate's), and the plane planned with it."""
+    import time
+    from dataclasses import asdict, replace
+
+    from shared import control
+    from tests.test_executor_io import Harness
+
+    h = Harness(tmp_path, models=("toy-a",), control_plane=True,
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0,
+                         "state_dir": str(tmp_path / "state"), "limits": {"auto": True, "progress": False}})
+    try:
+        cfg, mc = h.cfg, h.cfg.model("toy-a")
+
+        def key(hz: float) -> str:
+            return limit_key("cpu", "toy", mc.size, hz, cfg.engine.max_batch, mc.slo_ms, cfg.engine.kind,
+                             cfg.control.limits.target)
+
+        Path(cfg.control.state_dir).mkdir(parents=True, exist_ok=True)
+        (Path(cfg.control.state_dir) / "limits.json").write_text(json.dumps({key(2.0): {"limit": 40},
+                                                                            key(10.0): {"limit": 8}}))
+        h.io.limits = measure_limits(cfg, "ex0", h.slot.engine.models, CPU)  # as main() does at start-up
+        assert h.io.limits == {"toy-a": 40}
+
+        def registration_after_load(model) -> dict:
+            h.control_messages(0.2)
+            h.control.send_multipart([b"ex0", control.pack("load", models=[asdict(model)])])
+            end = time.monotonic() + 30
+            while time.monotonic() < end:
+                for msg in h.control_messages(0.1):
+                    if msg.get("kind") == "register":
+                        return msg
+            raise AssertionError("no registration after the load")
+
+        assert registration_after_load(replace(mc, hz=10.0))["limits"] == {"toy-a": 8}
+        # Settings nothing was measured at: no limit (the plane plans the model without one), not the old one.
+        assert registration_after_load(replace(mc, hz=5.0))["limits"] == {}
+    finally:
+        h.close()
+
+
+def test_limit_measurement_writes_nothing_to_the_serving_telemetry_file(tmp_path):
+    tele = tmp_path / "telemetry.jsonl"
+    path, data = cluster_config(tmp_path, models=[{"name": "toy-a", "arch": "toy", "size": "tiny", "slo_ms": 100}],
+                                executors=[{"name": "ex0", "device": "cpu", "models": ["toy-a"]}],
+                                engine={"kind": "robion", "max_batch": 2, "telemetry_file": str(tele)})
+    data["control"]["limits"] = {"auto": True, "epochs": 1, "duration_s": 0.5, "max_robots": 4, "progress": False}
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_config(path)
+    assert measure_limits(cfg, "ex0", ModelStore(CPU).load([cfg.model("toy-a")]).models, CPU)
+    assert not tele.exists() or not tele.read_text().strip(), "simulated locksteps in the serving telemetry"
+
+
+def test_a_stop_during_limit_measurement_ends_the_executor_promptly(tmp_path):
+    """The start-up capacity search (minutes with the defaults) never looked at the stop: SIGTERM was honoured only
+    once it was over, long after a container's grace period."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests.helpers import ROOT
+
+    path, data = cluster_config(tmp_path, models=[{"name": "pi", "arch": "pi0", "size": "tiny", "slo_ms": 156}],
+                                executors=[{"name": "ex0", "device": "cpu", "models": ["pi"]}])
+    data["control"]["limits"] = {"auto": True, "epochs": 3, "duration_s": 3.0, "max_robots": 64, "progress": False}
+    path.write_text(yaml.safe_dump(data))
+    proc = subprocess.Popen([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0"],
+                            cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stderr:
+            if "measuring the robot limit" in line:
+                break
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0  # docker's default grace period; one epoch is 3 s here
+        assert not (tmp_path / "state" / "limits.json").exists()  # nothing cached from the cut search
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

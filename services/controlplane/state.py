@@ -7,7 +7,7 @@ import time
 from dataclasses import dataclass, field
 
 from services.controlplane.traffic import Quotas, assign
-from shared.config import ClusterConfig
+from shared.config import ClusterConfig, ModelConfig
 from shared.control import RoutingTable
 from shared.protocol import ModelInfo
 
@@ -23,6 +23,11 @@ SETTLE_HEARTBEATS = 3
 ROUTERS_GRACE_S = 0.5
 MAX_AWAITED = 4096  # executor names routers may add to the hold (each at most MAX_NAME_CHARS)
 MAX_NAME_CHARS = 255
+
+
+def limit_basis(model: ModelConfig) -> tuple:
+    """The settings of a model a measured robot limit depends on (the engine's are fixed while the plane runs)."""
+    return (model.arch, model.size, model.hz, model.slo_ms)
 
 
 def valid_limit(value: object) -> bool:
@@ -155,12 +160,19 @@ class ClusterState:
         """New desired state (placement, populations, limits): re-solve even if the routes stay.
 
         If the re-solve fails the running config stays the desired state, so a failed `apply`
-        changes nothing (the table is only replaced once a solve succeeds)."""
+        changes nothing (the table is only replaced once a solve succeeds).
+
+        A measured limit holds for the settings it was measured at: one of a model whose architecture, size,
+        rate or deadline changes (or that is gone) is dropped, and the executor that reloads it reports the
+        one for its new settings, if it has it."""
         old, self.cfg = self.cfg, cfg
+        measured = self.measured_limits
+        before, after = {m.name: limit_basis(m) for m in old.models}, {m.name: limit_basis(m) for m in cfg.models}
+        self.measured_limits = {m: c for m, c in measured.items() if m in before and before[m] == after.get(m)}
         try:
             self._rebuild(force=True)
         except BaseException:
-            self.cfg = old
+            self.cfg, self.measured_limits = old, measured
             raise
 
     def heartbeat(self, name: str, depths: dict[str, int], now: float | None = None) -> bool:

@@ -13,14 +13,16 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
 
 from services.executor.engine import ServedModel, make_engine
-from services.executor.simulation import SimConfig, find_capacity
-from shared.config import ClusterConfig
+from services.executor.simulation import SearchCancelled, SimConfig, find_capacity
+from shared.config import ClusterConfig, ModelConfig
 from shared.files import write_atomic
 
 log = logging.getLogger("robion.executor")
@@ -81,14 +83,21 @@ def owned_models(cfg: ClusterConfig, executor: str, hosted: list[str]) -> list[s
     return [m for m in hosted if first.get(m, executor) == executor]
 
 
-def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedModel], device: torch.device) -> dict[str, int]:
-    """Limits for the models this executor owns and the config leaves open; cached ones are reused."""
+def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedModel], device: torch.device, *,
+                   settings: Mapping[str, ModelConfig] | None = None, measure: bool = True,
+                   stop: threading.Event | None = None) -> dict[str, int]:
+    """Limits for the models this executor owns and the config leaves open; cached ones are reused.
+
+    ``settings``: each model's settings (default the config's; a reload passes the ones it loaded, whose rate or
+    deadline may differ). ``measure`` False: cached limits only. ``stop`` set: the search ends between epochs and
+    the model being measured gets no limit (nothing is cached for it); the ones found so far are returned.
+    """
     lc = cfg.control.limits
     cache = LimitCache(Path(cfg.control.state_dir) / "limits.json")
     known = cache.read()
     out: dict[str, int] = {}
     for name in owned_models(cfg, executor, list(models)):
-        mc = cfg.model(name)
+        mc = settings[name] if settings is not None and name in settings else cfg.model(name)
         if mc.limit is not None:
             continue
         served = models[name]
@@ -102,13 +111,22 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
             # Reporting it would crash this executor (int(NaN)) or mislead the solver (int(2.5)).
             log.warning("%s: %s has limit %r, not a positive integer; measuring it again",
                         cache.path, key, known[key].get("limit") if isinstance(known[key], dict) else known[key])
+        if not measure:
+            log.warning("no cached robot limit for %s at its settings (%s): it is planned without one until it is "
+                        "measured (at the executor's next start) or given in models[].limit", name, key)
+            continue
         log.info("measuring the robot limit of %s (%s) at %g Hz ...", name, key, mc.hz)
         t0 = time.monotonic()
-        engine_cfg = dataclasses.replace(cfg.engine)
-        result = find_capacity(lambda sink: make_engine({name: served}, engine_cfg, device, sink), name, hz=mc.hz,
-                               sim=SimConfig(epochs=lc.epochs, duration_s=lc.duration_s, seed=lc.seed,
-                                             network=lc.network),
-                               target=lc.target, max_robots=lc.max_robots, progress=lc.progress)
+        # The simulated robots' locksteps are no serving telemetry: kept out of the engine's telemetry file.
+        engine_cfg = dataclasses.replace(cfg.engine, telemetry_file=None)
+        try:
+            result = find_capacity(lambda sink: make_engine({name: served}, engine_cfg, device, sink), name,
+                                   hz=mc.hz, sim=SimConfig(epochs=lc.epochs, duration_s=lc.duration_s, seed=lc.seed,
+                                                           network=lc.network),
+                                   target=lc.target, max_robots=lc.max_robots, progress=lc.progress, cancel=stop)
+        except SearchCancelled:
+            log.info("stopped while measuring the robot limit of %s", name)
+            return out
         took = time.monotonic() - t0
         limit = max(1, result.capacity)
         entry = {"limit": limit, "measured_s": round(took, 1), "points": [

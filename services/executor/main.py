@@ -111,7 +111,10 @@ def main(argv: list[str] | None = None) -> int:
 
     limits: dict[str, int] = {}
     if cfg.control.limits.auto:
-        limits = measure_limits(cfg, args.name, hosted.models, device)
+        limits = measure_limits(cfg, args.name, hosted.models, device, stop=stop)
+        if stop.is_set():  # the capacity search takes minutes: a stop ends it between epochs
+            log.info("stopped during start-up")
+            return 0
     slot = EngineSlot(cfg.engine, device, on_results)
     metrics = ExecutorMetrics(args.name, ex_cfg.device, {n: s.slo_s for n, s in hosted.inputs.items()})
     index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), 0)

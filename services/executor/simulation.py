@@ -484,8 +484,12 @@ def _run_epoch(host: EngineHost, workload: Sequence[RobotGroup], cfg: SimConfig,
         wall_s=time.monotonic() - wall0, telemetry=telemetry)
 
 
+class SearchCancelled(Exception):
+    """The ``cancel`` event of a simulation or capacity search was set: it ended between epochs."""
+
+
 def simulate(engine: EngineHost | EngineFactory, workload: Sequence[RobotGroup], cfg: SimConfig | None = None,
-             stop_below: float | None = None) -> SimResult:
+             stop_below: float | None = None, cancel: threading.Event | None = None) -> SimResult:
     """Drive simulated robots against one engine for ``cfg.epochs`` epochs and report SLO attainment.
 
     Deadlines are the engine's ``models[name].slo_s``; observation shapes come from each
@@ -507,6 +511,8 @@ def simulate(engine: EngineHost | EngineFactory, workload: Sequence[RobotGroup],
     epochs: list[EpochResult] = []
     stopped = False
     for e in range(cfg.epochs):
+        if cancel is not None and cancel.is_set():
+            raise SearchCancelled()
         epochs.append(_run_epoch(host, workload, cfg, e, inputs))
         if stop_below is not None and e + 1 < cfg.epochs:
             left = cfg.epochs - len(epochs)
@@ -699,11 +705,12 @@ class CapacityResult:
 
 
 def measure_point(host: EngineHost, model: str, robots: int, hz: float, sim: SimConfig, target: float,
-                  early_stop: bool = True) -> Point:
+                  early_stop: bool = True, cancel: threading.Event | None = None) -> Point:
     """One point of a curve: ``robots`` robots of ``model`` at ``hz``; the engine is reused or rebuilt per the host."""
     t0 = time.monotonic()
     try:
-        res = simulate(host, [RobotGroup(model, robots, hz)], sim, stop_below=target if early_stop else None)
+        res = simulate(host, [RobotGroup(model, robots, hz)], sim, stop_below=target if early_stop else None,
+                       cancel=cancel)
     finally:
         host.end_point()
     s = res.models[model]
@@ -719,14 +726,14 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
                      target: float = 0.98, robots: Sequence[int] | None = None, start: int = 1,
                      max_robots: int = 256, early_stop: bool = True, progress: bool = True,
                      on_point: Callable[[str, Point], None] | None = None,
-                     screen_epochs: int | None = None) -> dict[str, CapacityResult]:
+                     screen_epochs: int | None = None, cancel: threading.Event | None = None) -> dict[str, CapacityResult]:
     """Capacity of ``model`` on each engine, their points interleaved so all see the same machine state.
 
     ``robots`` given: a sweep over those counts; otherwise a search (exponential growth
     from ``start`` then bisection, at most ``max_robots``). ``on_point(engine, point)``
     is called after each point (e.g. to save partial results). ``screen_epochs`` (search
     only): bracket with points of that many epochs and run all ``sim.epochs`` only on the
-    candidate (CapacitySearch).
+    candidate (CapacitySearch). ``cancel`` set: SearchCancelled between epochs.
     """
     sim = sim or SimConfig()
     if screen_epochs is not None and screen_epochs >= sim.epochs:
@@ -746,7 +753,7 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
                     bar.set_postfix_str(f"{name} @ {n} robots")
                 epochs = search.epochs_next()
                 point_sim = sim if epochs is None else dataclasses.replace(sim, epochs=epochs)
-                point = measure_point(hosts[name], model, n, hz, point_sim, target, early_stop)
+                point = measure_point(hosts[name], model, n, hz, point_sim, target, early_stop, cancel)
                 point.screened = epochs is not None
                 search.record(point)
                 log.info("%s %s %d robots: SLO-AT %.3f p99 %.1f ms%s", model, name, n, point.slo_attainment,
@@ -767,11 +774,12 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
 
 def find_capacity(engine: EngineHost | EngineFactory, model: str, hz: float = 2.0, sim: SimConfig | None = None,
                   target: float = 0.98, start: int = 1, max_robots: int = 256, early_stop: bool = True,
-                  progress: bool = True, screen_epochs: int | None = None) -> CapacityResult:
+                  progress: bool = True, screen_epochs: int | None = None,
+                  cancel: threading.Event | None = None) -> CapacityResult:
     """The largest robot count of ``model`` with SLO attainment >= ``target`` on one engine."""
     host = _as_host(engine)
     return compare_capacity({host.label or "engine": host}, model, hz, sim, target, None, start, max_robots,
-                            early_stop, progress, screen_epochs=screen_epochs)[host.label or "engine"]
+                            early_stop, progress, screen_epochs=screen_epochs, cancel=cancel)[host.label or "engine"]
 
 
 def sweep(engine: EngineHost | EngineFactory, model: str, robots: Sequence[int], hz: float = 2.0,

@@ -18,6 +18,7 @@ import numpy as np
 import zmq
 
 from services.executor.hosting import EngineSlot, Hosted, ModelStore, ServedInput
+from services.executor.limits import measure_limits
 from services.executor.scheduler import Request, Result
 from shared import control
 from shared.config import ClusterConfig, ModelConfig, dial_address
@@ -364,6 +365,12 @@ class ExecutorIO:
                 self.fatal.set()  # the I/O loop ends within one poll; main then withdraws and exits 1
                 return
         self.metrics.slo_s = {n: s.slo_s for n, s in hosted.inputs.items()}
+        if self.cfg.control.limits.auto:
+            # A limit holds for the settings it was measured at (rate, deadline): the start-up ones no longer
+            # describe models whose settings the reload changed, nor those it added or removed. Cached ones
+            # only: a capacity search here would keep this executor out of routing for minutes.
+            self.limits = measure_limits(self.cfg, self.name, hosted.models, self.store.device, measure=False,
+                                         settings={n: s.config for n, s in hosted.inputs.items()})
         log.info("now serving %s (engine ready in %.1f s)", sorted(hosted.inputs), took)
         self._reregister.set()
 
