@@ -7,8 +7,10 @@ as a ConfigError, never as a traceback, and every key the file may hold is decla
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 import re
+import sys
 import types
 import typing
 from dataclasses import dataclass, field
@@ -195,6 +197,9 @@ class FleetConfig:
 class ClusterConfig:
     models: list[ModelConfig]
     executors: list[ExecutorConfig]
+    # Python modules imported before the models are checked, each registering architectures of its own with
+    # @register (docs/models.md, "Serving your own two-stage VLA"); the config file's folder is searched too.
+    imports: list[str] = field(default_factory=list)
     engine: EngineConfig = field(default_factory=EngineConfig)
     router: RouterConfig = field(default_factory=RouterConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
@@ -311,9 +316,24 @@ def _unique_names(names: list[str], path: str) -> set[str]:
     return seen
 
 
-def _validate(cfg: ClusterConfig) -> None:
+def import_modules(names: list[str], folder: Path | None = None) -> None:
+    """Import the ``imports`` of a config (their @register decorators add architectures). ``folder``, the
+    config file's, is searched after sys.path, so a module beside the config never shadows an installed one."""
+    if folder is not None and names and str(folder) not in sys.path:
+        sys.path.append(str(folder))
+    for i, name in enumerate(names):
+        if not name or not all(part.isidentifier() for part in name.split(".")):
+            raise ConfigError(f"imports[{i}]: expected a Python module name such as my_vla or pkg.models, got {name!r}")
+        try:
+            importlib.import_module(name)
+        except Exception as exc:  # its own import errors included: the operator's module, named with the cause
+            raise ConfigError(f"imports[{i}]: cannot import {name!r} ({type(exc).__name__}: {exc})") from None
+
+
+def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
     from shared.models.registry import architectures
 
+    import_modules(cfg.imports, folder)
     archs = architectures()
     if not cfg.models:
         raise ConfigError("models: at least one model is needed")
@@ -481,9 +501,10 @@ def _expand_placement(data: Any) -> Any:
     return data
 
 
-def config_from_dict(data: Any) -> ClusterConfig:
+def config_from_dict(data: Any, folder: Path | None = None) -> ClusterConfig:
+    """A checked config from parsed YAML; ``folder`` (the file's) is searched for its ``imports``."""
     cfg = _build(ClusterConfig, _expand_placement(data), "")
-    _validate(cfg)
+    _validate(cfg, folder)
     if any(e.memory_gb is not None for e in cfg.executors):
         from shared.placement import check_fit
 
@@ -503,4 +524,4 @@ def load_config(path: str | Path) -> ClusterConfig:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         raise ConfigError(f"{path}: not valid YAML{where}") from None
-    return config_from_dict(data)
+    return config_from_dict(data, path.resolve().parent)

@@ -61,6 +61,8 @@ def _differences(prefix: str, a: Any, b: Any, out: list[str]) -> None:
 def restart_only_changes(old: ClusterConfig, new: ClusterConfig) -> list[str]:
     """The settings that differ in ``new`` but take effect only when the processes restart."""
     out: list[str] = []
+    if old.imports != new.imports:  # every process imports them as it starts; a reload could not build the models
+        out.append(f"imports: {old.imports!r} -> {new.imports!r}")
     _differences("engine", old.engine, new.engine, out)
     _differences("router", old.router, new.router, out)
     for f in fields(old.control):

@@ -1,5 +1,8 @@
 """``robion models [--json]``: the registered architectures at their full size.
 
+A user's own architectures are listed when their modules are named in ROBION_IMPORTS
+(comma-separated); a cluster config names them under ``imports``.
+
 Models are built on the meta device, so listing costs no memory. The ``toy`` test
 architecture is left out; every other registered architecture (built-in or a user's)
 is listed.
@@ -9,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from shared.models.registry import architectures, build_meta
 
@@ -33,7 +37,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="machine-readable output")
     ap.add_argument("--size", default="full", help="config size to describe (default: full)")
     args = ap.parse_args(argv)
-    info = describe(args.size)
+    try:
+        info = describe(args.size)
+    except ImportError as exc:  # a module of the user's named in ROBION_IMPORTS
+        print(f"robion models: {exc}", file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(info, indent=2))
         return 0

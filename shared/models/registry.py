@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib
+import os
+
 import torch
 
 from shared.models.base import VLAModel
@@ -73,3 +76,11 @@ def _load_builtin() -> None:
     import shared.models.smolvla  # noqa: F401
     import shared.models.toy  # noqa: F401
     import shared.models.xr0  # noqa: F401
+
+    # A user's own architectures, for tools run without a config (`robion models`): the modules named in
+    # ROBION_IMPORTS (comma-separated). A config lists them under `imports` (shared/config.py).
+    for name in filter(None, (n.strip() for n in os.environ.get("ROBION_IMPORTS", "").split(","))):
+        try:
+            importlib.import_module(name)
+        except Exception as exc:
+            raise ImportError(f"ROBION_IMPORTS: cannot import {name!r} ({type(exc).__name__}: {exc})") from exc

@@ -36,9 +36,12 @@ class PromptTokenizer:
 
     @classmethod
     def for_model(cls, model, path: str | None = None, cache_size: int = 1024) -> "PromptTokenizer":
-        """The tokenizer matching a zoo model's prompt length, vocabulary and pad id."""
-        cfg = model.cfg
-        return cls(model.io.prompt_len, cfg.vocab, path, getattr(cfg, "pad_id", PAD_ID), cache_size)
+        """The tokenizer matching a model's prompt length, vocabulary and pad id: its config's ``vocab`` and
+        ``pad_id`` where it has them (every zoo model does). A user's model without them gets the byte-level
+        ids as they are, all below 258 (pad, BOS and the 256 byte values)."""
+        cfg = getattr(model, "cfg", None)
+        return cls(model.io.prompt_len, getattr(cfg, "vocab", 256 + _BYTE_OFFSET), path,
+                   getattr(cfg, "pad_id", PAD_ID), cache_size)
 
     # -- backends
 
