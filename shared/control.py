@@ -1,6 +1,7 @@
 """Control messages between services (single msgpack frames, never seen by robots).
 
-executor -> control plane: register {executor, device, instance, models: {name: ModelInfo}, limits: {name: int}}
+executor -> control plane: register {executor, device, instance, models: {name: ModelInfo}, limits: {name: int},
+                                     load: {id, ok, error?} or None (the outcome of its last `load`)}
                                                      -> registered {version}
                            heartbeat {executor, depths}  (answered only by reregister, when unknown)
                            deregister {executor}         (not answered)
@@ -13,6 +14,8 @@ router   -> control plane: table_get {version, role, executors?}
                            the control plane a router reports version -1 and names its table's executors)
 anyone   -> control plane: status                    -> status {executors, table, router, expected, limits,
                                                                 settling, ready, rollout}
+control plane -> executor: load {models: [model config], load_id}  (a placement change's reload; not answered:
+                           the executor registers again once it is over, its `load` naming load_id)
 operator -> control plane: apply {config}            -> applied {steps, version}
                            drain / resume {executor} -> ok {version}
 executor -> router (backend, empty robot frame): executor_hello {executor, instance}  (not answered; the

@@ -42,6 +42,21 @@ def test_an_executor_that_cannot_load_its_new_models_is_put_back_at_once(tmp_pat
         assert status["table"]["routes"]["toy-a"] == ["ex0", "ex1"]
 
 
+def test_new_weights_that_cannot_be_loaded_fail_their_steps(tmp_path):
+    """A step ended when its executor registered the step's model names. New weights keep the names, and a
+    reload that could not load them falls back to the old ones under the same names: the rollout reported
+    both steps done while the old weights kept serving. The registration after a reload says how it went."""
+    path, data = cluster_config(tmp_path)  # ex0: toy-a, toy-b; ex1: toy-a
+    cfg = load_config(path)
+    new = yaml.safe_load(path.read_text())
+    new["models"][0]["weights"] = str(tmp_path / "missing.safetensors")
+    with LocalCluster(cfg, path, log_level="WARNING"):
+        status = apply_and_wait(cfg.control.bind, new, ["ex0", "ex1"])
+        assert status["rollout"]["failed"] == ["ex0", "ex1"] and status["rollout"]["done"] == [], status["rollout"]
+        assert not status["executors"]["ex0"]["draining"] and not status["executors"]["ex1"]["draining"]
+        assert status["table"]["routes"]["toy-a"] == ["ex0", "ex1"]
+
+
 def test_a_population_change_reloads_no_executor(tmp_path):
     """`robots` is read by the traffic controller only; a change of it re-solves the quotas. It used to
     drain and reload every executor hosting the model in turn (engines rebuilt, minutes on a GPU)."""

@@ -58,15 +58,15 @@ def test_an_executor_that_leaves_during_its_change_fails_the_step_without_the_fu
     c, st = _state_with(["ex0", "ex1"])
     loads = []
     ro = Rollout([Step("ex0", [c.model("a"), c.model("b")]), Step("ex1", [c.model("b")])], timeout_s=600, gone_s=30)
-    ro.tick(st, lambda ex, models: loads.append(ex), now=1.0)  # ex0 drained
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=1.0)  # ex0 drained
     st.router_version = st.table.version
-    ro.tick(st, lambda ex, models: loads.append(ex), now=2.0)  # the load goes out
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=2.0)  # the load goes out
     assert loads == ["ex0"] and ro.current.executor == "ex0"
     st.deregister("ex0")  # it dies while reloading
-    ro.tick(st, lambda ex, models: loads.append(ex), now=3.0)
-    ro.tick(st, lambda ex, models: loads.append(ex), now=20.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=3.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=20.0)
     assert ro.current.executor == "ex0"  # within the grace period: still waiting
-    ro.tick(st, lambda ex, models: loads.append(ex), now=34.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=34.0)
     assert ro.failed == ["ex0"] and ro.current.executor == "ex1"  # 31 s gone, not 600 s
 
 
@@ -75,15 +75,15 @@ def test_a_brief_absence_does_not_fail_the_step():
 
     c, st = _state_with(["ex0"])
     ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
-    ro.tick(st, lambda ex, models: None, now=1.0)
+    ro.tick(st, lambda ex, models, load_id: None, now=1.0)
     info = st.executors["ex0"].models["a"]
     st.deregister("ex0")
-    ro.tick(st, lambda ex, models: None, now=2.0)
+    ro.tick(st, lambda ex, models, load_id: None, now=2.0)
     st.register("ex0", "cpu", {"a": info}, now=25.0)  # back before the grace period ends
-    ro.tick(st, lambda ex, models: None, now=26.0)
+    ro.tick(st, lambda ex, models, load_id: None, now=26.0)
     st.deregister("ex0")
-    ro.tick(st, lambda ex, models: None, now=40.0)  # gone again: the count starts over
-    ro.tick(st, lambda ex, models: None, now=60.0)
+    ro.tick(st, lambda ex, models, load_id: None, now=40.0)  # gone again: the count starts over
+    ro.tick(st, lambda ex, models, load_id: None, now=60.0)
     assert ro.failed == [] and ro.current.executor == "ex0"
 
 
@@ -95,7 +95,7 @@ def test_an_executor_that_restarts_during_its_change_is_sent_the_load_again():
     ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
 
     def tick(now):
-        ro.tick(st, lambda ex, models: loads.append(ex), now=now)
+        ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=now)
 
     tick(1.0)
     st.router_version = st.table.version
@@ -123,7 +123,7 @@ def test_an_executor_that_restarts_during_its_change_is_sent_the_load_again():
     st.router_version = st.table.version
     tick(7.0)
     assert loads == ["ex0", "ex0"] and ro.failed == [] and ro.current.executor == "ex0"
-    ro.on_register(st, "ex0", ["a", "b"])  # it comes back with the new set: the step is done
+    ro.on_register(st, "ex0", ["a", "b"], {"id": ro.current.load_id, "ok": True})  # reloaded: the step is done
     assert ro.finished and ro.done_steps == ["ex0"] and not st.executors["ex0"].draining
 
 
@@ -135,12 +135,12 @@ def test_an_executor_whose_reload_fails_is_resumed_when_it_registers_its_previou
     c, st = _state_with(["ex0", "ex1"])
     loads = []
     ro = Rollout([Step("ex0", [c.model("a"), c.model("b")]), Step("ex1", [c.model("b")])], timeout_s=600, gone_s=30)
-    ro.tick(st, lambda ex, models: loads.append(ex), now=1.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=1.0)
     st.router_version = st.table.version
-    ro.tick(st, lambda ex, models: loads.append(ex), now=2.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=2.0)
     assert loads == ["ex0"] and st.executors["ex0"].draining
     st.register("ex0", "cpu", {"a": _info()}, now=3.0, instance="ex0-1")  # registered throughout
-    ro.on_register(st, "ex0", ["a"])
+    ro.on_register(st, "ex0", ["a"], {"id": ro.current.load_id, "ok": False, "error": "OSError: no weights"})
     assert ro.failed == ["ex0"] and ro.current.executor == "ex1"
     assert not st.executors["ex0"].draining and st.table.routes["a"] == ["ex0", "ex1"]
 
@@ -158,7 +158,7 @@ def test_an_executor_back_from_an_absence_during_its_change_stays_out_of_routing
         ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
 
         def tick(now):
-            ro.tick(st, lambda ex, models: loads.append(ex), now=now)
+            ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=now)
 
         tick(1.0)
         if loaded:
@@ -177,7 +177,7 @@ def test_an_executor_back_from_an_absence_during_its_change_stays_out_of_routing
         st.router_version = st.table.version
         tick(5.0)
         assert loads == ["ex0"] and not ro.failed  # sent once the router routes around it
-        ro.on_register(st, "ex0", ["a", "b"])
+        ro.on_register(st, "ex0", ["a", "b"], {"id": ro.current.load_id, "ok": True})
         assert ro.finished and not st.executors["ex0"].draining
 
 
@@ -189,11 +189,11 @@ def test_a_step_that_times_out_leaves_an_operator_drained_executor_drained():
     assert st.set_drained("ex0", True) and st.table.routes["a"] == ["ex1"]
     ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
     loads = []
-    ro.tick(st, lambda ex, models: loads.append(ex), now=1.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=1.0)
     st.router_version = st.table.version
-    ro.tick(st, lambda ex, models: loads.append(ex), now=2.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=2.0)
     assert loads == ["ex0"]
-    ro.tick(st, lambda ex, models: loads.append(ex), now=700.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=700.0)
     assert ro.failed == ["ex0"] and ro.finished
     assert st.table.routes["a"] == ["ex1"] and "ex0" in st.drained
 
@@ -211,7 +211,7 @@ def test_a_failed_reload_is_seen_after_an_absence_before_the_load():
     ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
 
     def tick(now):
-        ro.tick(st, lambda ex, models: loads.append(ex), now=now)
+        ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=now)
 
     tick(1.0)  # drained; the router has not fetched that table yet
     st.deregister("ex0")  # missed its heartbeats
@@ -222,6 +222,36 @@ def test_a_failed_reload_is_seen_after_an_absence_before_the_load():
     tick(3.0)
     assert loads == ["ex0"] and st.executors["ex0"].draining
     st.register("ex0", "cpu", {"a": _info()}, instance="ex0-1")  # its reload failed: the previous set again
-    ro.on_register(st, "ex0", ["a"])
+    ro.on_register(st, "ex0", ["a"], {"id": ro.current.load_id, "ok": False})
     assert ro.failed == ["ex0"] and ro.finished
     assert not st.executors["ex0"].draining and st.table.routes["a"] == ["ex0", "ex1"]
+
+
+def test_a_reload_is_judged_by_its_outcome_not_by_the_model_names():
+    """The step ended when the executor registered the step's model names: a failed reload of new weights (or a
+    new rate or deadline) registers the same names and counted as done; and an executor that lost the control
+    plane while reloading re-registered its old names, then failed its reload, and the failure was missed (the
+    step waited out its 600 s timeout, the executor drained and every apply BUSY). The registration after a
+    reload now carries the outcome of the load it answers."""
+    from services.controlplane.rollout import Rollout, Step
+
+    for ok in (True, False):
+        c, st = _state_with(["ex0", "ex1"])
+        loads: list[str] = []
+        ro = Rollout([Step("ex0", [c.model("a")])], timeout_s=600, gone_s=30)  # same names, new settings
+        ro.tick(st, lambda ex, models, load_id: loads.append(load_id), now=1.0)
+        st.router_version = st.table.version
+        ro.tick(st, lambda ex, models, load_id: loads.append(load_id), now=2.0)
+        assert len(loads) == 1 and st.executors["ex0"].draining
+        # It misses its heartbeats while reloading and registers again, told to: same names, no outcome yet.
+        st.deregister("ex0")
+        ro.tick(st, lambda ex, models, load_id: loads.append(load_id), now=3.0)
+        st.register("ex0", "cpu", {"a": _info()}, instance="ex0-1")
+        ro.on_register(st, "ex0", ["a"], None)
+        # An outcome of an earlier load (another step's) says nothing about this one.
+        ro.on_register(st, "ex0", ["a"], {"id": "earlier", "ok": True})
+        assert not ro.finished and st.executors["ex0"].draining and len(loads) == 1
+        st.register("ex0", "cpu", {"a": _info()}, instance="ex0-1")
+        ro.on_register(st, "ex0", ["a"], {"id": loads[0], "ok": ok, **({} if ok else {"error": "bad weights"})})
+        assert ro.finished and not st.executors["ex0"].draining
+        assert (ro.done_steps, ro.failed) == ((["ex0"], []) if ok else ([], ["ex0"]))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+import uuid
 from dataclasses import asdict, dataclass, fields, is_dataclass
 from typing import Any, Callable
 
@@ -18,7 +19,7 @@ from shared.config import ClusterConfig, ModelConfig
 
 log = logging.getLogger("robion.control")
 
-SendLoad = Callable[[str, list[ModelConfig]], None]
+SendLoad = Callable[[str, list[ModelConfig], str], None]  # executor, its new models, the load's id
 
 
 @dataclass
@@ -29,10 +30,11 @@ class Step:
     drained_version: int = 0  # the table version without this executor's routes
     loading: bool = False
     instance: str = ""  # the executor process the load was sent to
-    # Whether the executor has been off the registry since its load was sent. Only such an executor is
-    # told to register again (reregister), so a re-registration of its old models from the same process
-    # while it stayed registered means its reload ended: it failed and it kept its previous models.
-    absent: bool = False
+    # Names the load sent. The executor's first registration after its reload carries {id, ok}: the outcome
+    # is read from that, not guessed from the model names it registers. Names alone cannot tell new weights
+    # (or a new rate or deadline) from the old ones kept after a failed reload, nor the registration of a
+    # reload that failed from one the executor sends because it lost the control plane while reloading.
+    load_id: str = ""
 
 
 # Settings `apply` changes live: the models (placement, populations, rates, limits, weights),
@@ -143,8 +145,6 @@ class Rollout:
             return
         if step.executor in state.executors:
             self._gone_since = None
-        else:
-            step.absent = True
         if step.executor not in state.executors and self._gone(now) > self.gone_s:
             log.error("executor %s left during its placement change (off the registry for %.0f s); skipping it",
                       step.executor, self._gone(now))
@@ -155,10 +155,8 @@ class Rollout:
             # (and a load sent while it is off the registry would be dropped by the socket).
             step.loading = True
             step.instance = state.executors[step.executor].instance
-            # An absence before the load (it is registered now, or the load would not go out) says nothing
-            # about the reload: a re-registration of its old set from here on is a failed reload.
-            step.absent = False
-            send_load(step.executor, step.models)
+            step.load_id = uuid.uuid4().hex
+            send_load(step.executor, step.models, step.load_id)
             log.info("placement change: %s drained, loading %s", step.executor, [m.name for m in step.models])
         elif now - step.started > self.timeout_s:
             log.error("executor %s did not reload within %.0f s; resuming it as it is", step.executor, self.timeout_s)
@@ -177,17 +175,26 @@ class Rollout:
             self._gone_since = now
         return now - self._gone_since
 
-    def on_register(self, state: ClusterState, executor: str, models: list[str]) -> None:
+    def on_register(self, state: ClusterState, executor: str, models: list[str], load: dict | None = None) -> None:
+        """``load``: the outcome of the executor's last reload, {id, ok, error?}, as its registration carries it."""
         step = self.current
         if step is None or step.executor != executor or not step.started:
             return
         ex = state.executors.get(executor)
-        if step.loading and sorted(models) == sorted(m.name for m in step.models):
+        if step.loading and isinstance(load, dict) and load.get("id") == step.load_id:
             state.set_draining(executor, False)
-            log.info("placement change: %s serves %s again (table v%d)", executor, sorted(models),
-                     state.table.version)
-            self.done_steps.append(executor)
-            self.pending.pop(0)
+            if load.get("ok") is True:
+                log.info("placement change: %s serves %s again (table v%d)", executor, sorted(models),
+                         state.table.version)
+                self.done_steps.append(executor)
+                self.pending.pop(0)
+            else:
+                # It kept (or went back to) its previous models: waiting for the step's timeout would keep it
+                # out of routing (and every `apply` BUSY) meanwhile.
+                log.error("executor %s could not load %s (%s) and serves %s again; resuming it, its placement "
+                          "change failed", executor, [m.name for m in step.models], load.get("error", "see its log"),
+                          sorted(models))
+                self._skip(step)
             return
         if step.loading and ex is not None and step.instance and ex.instance != step.instance:
             # A new process with its old model set: the executor restarted and never got (or
@@ -195,17 +202,7 @@ class Rollout:
             log.warning("executor %s restarted during its placement change; loading %s again", executor,
                         [m.name for m in step.models])
             step.loading = False
-            step.absent = False  # the new process has registered; its own absences count from here
             _drain(state, step)
-            return
-        if step.loading and ex is not None and not step.absent:
-            # The same process, registered throughout, registers again only when its reload has
-            # ended: it could not load the new set and serves its previous models again. Waiting
-            # for the step's timeout would keep it out of routing (and every `apply` BUSY) meanwhile.
-            log.error("executor %s could not load %s and serves %s again; resuming it, its placement change "
-                      "failed (see its log)", executor, [m.name for m in step.models], sorted(models))
-            state.set_draining(executor, False)
-            self._skip(step)
             return
         if ex is not None and not ex.draining:
             # Back after it was off the registry (missed heartbeats): its new registry entry is routed.
@@ -213,7 +210,7 @@ class Rollout:
             # routes by this drained table again.
             log.warning("executor %s registered again during its placement change; draining it again", executor)
             _drain(state, step)
-        # Otherwise the same process re-registering after it lost the control plane: keep waiting.
+        # Otherwise the same process re-registering while it reloads (it lost the control plane): keep waiting.
 
     def status(self) -> dict:
         return {"pending": [s.executor for s in self.pending], "done": self.done_steps, "failed": self.failed,

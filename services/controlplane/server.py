@@ -138,8 +138,9 @@ class ControlPlane:
         self._assigned = published
         self.metrics.table_version.set(self.state.table.version)
 
-    def _send_load(self, executor: str, models: list[ModelConfig]) -> None:
-        self.sock.send_multipart([executor.encode(), control.pack("load", models=[asdict(m) for m in models])])
+    def _send_load(self, executor: str, models: list[ModelConfig], load_id: str) -> None:
+        self.sock.send_multipart([executor.encode(), control.pack("load", models=[asdict(m) for m in models],
+                                                                  load_id=load_id)])
 
     def _reply(self, peer: bytes, kind: str, **fields) -> None:
         self.sock.send_multipart([peer, control.pack(kind, **fields)])
@@ -253,11 +254,14 @@ class ControlPlane:
             instance = msg.get("instance", "")
             if not isinstance(instance, str):
                 raise BadRequest(f"instance: expected a string, got {_kind_of(instance)}")
+            load = msg.get("load")
+            if load is not None and not isinstance(load, dict):
+                raise BadRequest(f"load: expected a map, got {_kind_of(load)}")
             st.register(name, str(msg.get("device", "")), models, limits=limits, instance=instance)
             log.info("executor %s registered on %s with %s (table v%d)", name, msg.get("device"),
                      sorted(models), st.table.version)
             if self.rollout is not None:
-                self.rollout.on_register(st, name, list(models))
+                self.rollout.on_register(st, name, list(models), load)
             self._reply(peer, "registered", version=st.table.version)
         elif kind == "heartbeat":
             known = st.heartbeat(_name(msg, "executor"), dict(_mapping(msg, "depths")))

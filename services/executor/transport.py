@@ -108,6 +108,9 @@ class ExecutorIO:
         self.instance = uuid.uuid4().hex
         self.in_flight = 0  # requests handed to the engine and not yet answered (I/O thread only)
         self._reload: threading.Thread | None = None
+        # The outcome of the last `load`, {id, ok, error?}: every registration carries it, so the control plane
+        # reads from the registration after a reload whether the new models were loaded.
+        self._load_outcome: dict | None = None
         self._reregister = threading.Event()
         self.fatal = threading.Event()  # serving cannot go on (a reload and its fallback failed)
         self._poller: zmq.Poller | None = None
@@ -184,7 +187,8 @@ class ExecutorIO:
 
     def register(self) -> None:
         self._ctl_send("register", executor=self.name, device=self.device, instance=self.instance,
-                       models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits)
+                       models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits,
+                       load=self._load_outcome)
         self._hello()
 
     def _hello(self) -> None:
@@ -326,16 +330,22 @@ class ExecutorIO:
         if self._reload is not None and self._reload.is_alive():
             log.warning("a model reload is already running; ignoring another")
             return
+        load_id = msg.get("load_id")
         try:
             configs = [ModelConfig(**m) for m in msg["models"]]
         except (KeyError, TypeError) as exc:
             log.error("malformed load request: %s", exc)
+            if isinstance(load_id, str):  # answered, so the rollout moves on instead of waiting out its step
+                self._load_outcome = {"id": load_id, "ok": False, "error": f"malformed load request: {exc}"}
+                self.register()
             return
-        self._reload = threading.Thread(target=self._reload_models, args=(configs,), name="reload", daemon=True)
+        self._reload = threading.Thread(target=self._reload_models, args=(configs, load_id), name="reload",
+                                        daemon=True)
         self._reload.start()
 
-    def _reload_models(self, configs: list[ModelConfig]) -> None:
+    def _reload_models(self, configs: list[ModelConfig], load_id: str | None = None) -> None:
         """Off the I/O thread: wait for held requests to be answered, then swap models and engine."""
+        outcome: dict = {"id": load_id, "ok": True}
         names = [mc.name for mc in configs]
         self._known.update(names)
         previous = [s.config for s in self.served.values()]
@@ -350,8 +360,9 @@ class ExecutorIO:
             hosted = self.store.load(configs)
             self.served = hosted.inputs
             took = self.slot.start(hosted)
-        except Exception:
+        except Exception as exc:
             log.exception("loading %s failed; keeping the previous models", names)
+            outcome = {"id": load_id, "ok": False, "error": f"{type(exc).__name__}: {exc}"[:500]}
             try:
                 hosted = self.store.load(previous)
                 self.served = hosted.inputs
@@ -372,6 +383,7 @@ class ExecutorIO:
             self.limits = measure_limits(self.cfg, self.name, hosted.models, self.store.device, measure=False,
                                          settings={n: s.config for n, s in hosted.inputs.items()})
         log.info("now serving %s (engine ready in %.1f s)", sorted(hosted.inputs), took)
+        self._load_outcome = outcome
         self._reregister.set()
 
     def drain(self, timeout_s: float = 5.0) -> None:
