@@ -7,7 +7,9 @@ as a ConfigError, never as a traceback, and every key the file may hold is decla
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib
+import json
 import math
 import re
 import sys
@@ -89,6 +91,22 @@ class ModelConfig:
     hz: float = field(default=2.0, metadata=_check(positive_number, "expected a positive number"))
     limit: int | None = field(default=None, metadata=_check(positive_number, "expected a positive integer"))
     # limit = C_i, robots of this model one GPU sustains at the target SLO attainment (measured when absent)
+
+
+# Model settings only the traffic controller reads (executors never use a population).
+TRAFFIC_ONLY_MODEL_FIELDS = frozenset({"robots"})
+
+
+def executor_settings(model: ModelConfig) -> dict[str, Any]:
+    """The settings of a model its executor loads or serves by: all but those only the traffic controller reads."""
+    return {k: v for k, v in dataclasses.asdict(model).items() if k not in TRAFFIC_ONLY_MODEL_FIELDS}
+
+
+def settings_digest(model: ModelConfig) -> str:
+    """A short fingerprint of ``executor_settings``: an executor registers one per model it serves, so the
+    control plane can tell whether it runs what the desired state says."""
+    text = json.dumps(executor_settings(model), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 @dataclass

@@ -1,7 +1,8 @@
 """Control messages between services (single msgpack frames, never seen by robots).
 
 executor -> control plane: register {executor, device, instance, models: {name: ModelInfo}, limits: {name: int},
-                                     load: {id, ok, error?} or None (the outcome of its last `load`)}
+                                     load: {id, ok, error?} or None (the outcome of its last `load`),
+                                     settings: {name: digest of the model's settings}}
                                                      -> registered {version}
                            heartbeat {executor, depths}  (answered only by reregister, when unknown)
                            deregister {executor}         (not answered)

@@ -80,3 +80,34 @@ def test_a_population_change_reloads_no_executor(tmp_path):
         new["models"][1]["slo_ms"] = 400
         reply = control_request(cfg.control.bind, "apply", timeout_s=30, config=yaml.safe_dump(new))
         assert reply is not None and reply["kind"] == "applied" and reply["steps"] == ["ex0"], reply
+
+
+def test_an_executor_restarted_after_an_apply_is_brought_to_the_applied_state(tmp_path):
+    """A process loads the models of its own config file as it starts. After an apply, an executor that crashed
+    and was restarted came back with the placement from before it, and nothing told it otherwise: the applied
+    placement reverted for good while `ctl status` showed the rollout done."""
+    import signal
+
+    path, data = cluster_config(tmp_path)  # ex0: toy-a, toy-b; ex1: toy-a
+    cfg = load_config(path)
+    new = yaml.safe_load(path.read_text())
+    new["executors"][1]["models"] = ["toy-a", "toy-b"]
+    with LocalCluster(cfg, path, log_level="WARNING") as cluster:
+        status = apply_and_wait(cfg.control.bind, new, ["ex1"])
+        assert status["rollout"]["done"] == ["ex1"] and status["table"]["routes"]["toy-b"] == ["ex0", "ex1"]
+        killed = status["executors"]["ex1"]["instance"]
+        proc = cluster.procs["executor[ex1]"]
+        proc.send_signal(signal.SIGKILL)  # a crash; its supervisor starts it again, from the same file
+        proc.wait(10)
+        cluster._spawn("executor[ex1]", "services.executor.main", "--name", "ex1")
+
+        def applied_again():
+            s = control_status(cfg.control.bind, 5)
+            ex1 = s and s["executors"].get("ex1")
+            return s if (ex1 and ex1["instance"] != killed and ex1["models"] == ["toy-a", "toy-b"]
+                         and not ex1["draining"]) else None
+
+        status = wait_for(applied_again, 60, poll_s=0.2)
+        assert status is not None, control_status(cfg.control.bind, 5)
+        assert status["table"]["routes"]["toy-b"] == ["ex0", "ex1"], status["table"]["routes"]
+        assert status["rollout"]["done"] == ["ex1"] and status["rollout"]["failed"] == [], status["rollout"]

@@ -11,11 +11,11 @@ from __future__ import annotations
 import logging
 import time
 import uuid
-from dataclasses import asdict, dataclass, fields, is_dataclass
+from dataclasses import dataclass, fields, is_dataclass
 from typing import Any, Callable
 
 from services.controlplane.state import ClusterState
-from shared.config import ClusterConfig, ModelConfig
+from shared.config import ClusterConfig, ModelConfig, executor_settings
 
 log = logging.getLogger("robion.control")
 
@@ -43,14 +43,6 @@ class Step:
 # what runs.
 LIVE_CONTROL_FIELDS = frozenset({"strategy", "solve_time_limit_s", "headroom"})
 LIVE_EXECUTOR_FIELDS = frozenset({"name", "models", "memory_gb"})  # memory_gb: checked at apply
-# Model settings only the traffic controller reads (executors never use a population), so a change of
-# them re-solves the quotas without reloading the executors hosting the model.
-TRAFFIC_ONLY_MODEL_FIELDS = frozenset({"robots"})
-
-
-def _executor_settings(model: ModelConfig) -> dict[str, Any]:
-    return {k: v for k, v in asdict(model).items() if k not in TRAFFIC_ONLY_MODEL_FIELDS}
-
 
 def _differences(prefix: str, a: Any, b: Any, out: list[str]) -> None:
     if is_dataclass(a) and is_dataclass(b):
@@ -93,7 +85,9 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
 
         def changed(model: str) -> bool:
             try:
-                return _executor_settings(old.model(model)) != _executor_settings(new.model(model))
+                # A change of settings only the traffic controller reads (populations) re-solves the quotas
+                # without reloading the executors hosting the model.
+                return executor_settings(old.model(model)) != executor_settings(new.model(model))
             except KeyError:
                 return True
 

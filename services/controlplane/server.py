@@ -11,10 +11,10 @@ from typing import Any
 import yaml
 import zmq
 
-from services.controlplane.rollout import Rollout, plan_steps, restart_only_changes
+from services.controlplane.rollout import Rollout, Step, plan_steps, restart_only_changes
 from services.controlplane.state import ClusterState
 from shared import control
-from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_dict
+from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_dict, settings_digest
 from shared.control import ControlError
 from shared.metrics import ControlMetrics, serve
 from shared.protocol import ModelInfo, ProtocolError
@@ -69,6 +69,10 @@ class ControlPlane:
         self._published: set[str] = set()
         self._assigned: set[tuple[str, str]] = set()
         self.rollout: Rollout | None = None
+        # Whether an `apply` changed the desired state in this process's lifetime (see _reconcile), and the
+        # process of each configured executor already checked against it.
+        self.applied = False
+        self._reconciled: dict[str, str] = {}
 
     def run(self, stop: threading.Event) -> None:
         # When the socket was last seen empty: every heartbeat sent before then has been read. Heartbeat
@@ -138,6 +142,36 @@ class ControlPlane:
         self._assigned = published
         self.metrics.table_version.set(self.state.table.version)
 
+    def _reconcile(self, name: str, instance: str, settings: dict | None) -> None:
+        """Bring a (re)started executor to the desired state an `apply` made.
+
+        A process loads the models of its own config file as it starts. An executor that restarted after an
+        apply (a crash, a supervisor's restart), or was down when it ran, came back with the placement and
+        settings from before it, and nothing told it otherwise. Once per process, its registered settings
+        (a digest per model) are compared with the desired state, and a reload is queued where they differ.
+        Without an apply in this control plane's lifetime its desired state is the file the executors read
+        too: after a restart of the plane, pushing that would undo an apply the executors still run.
+        """
+        st = self.state
+        if not self.applied or settings is None or self._reconciled.get(name) == instance:
+            return
+        try:
+            wanted = st.cfg.executor(name).models
+        except KeyError:
+            return  # a replica outside the config keeps what it has
+        self._reconciled[name] = instance
+        if settings == {m: settings_digest(st.cfg.model(m)) for m in wanted}:
+            return
+        if self.rollout is not None and any(s.executor == name for s in self.rollout.pending):
+            return  # its step of the running rollout brings it there
+        step = Step(name, [st.cfg.model(m) for m in wanted])
+        log.warning("executor %s registered models or settings other than the applied ones: reloading it with %s",
+                    name, wanted)
+        if self.rollout is None or self.rollout.finished:
+            self.rollout = Rollout([step])
+        else:
+            self.rollout.pending.append(step)
+
     def _send_load(self, executor: str, models: list[ModelConfig], load_id: str) -> None:
         self.sock.send_multipart([executor.encode(), control.pack("load", models=[asdict(m) for m in models],
                                                                   load_id=load_id)])
@@ -187,6 +221,10 @@ class ControlPlane:
             steps = plan_steps(st.cfg, new, st)
             st.replace_config(new)
             st.settle()
+            self.applied = True
+            # The processes registered now are this apply's to change (its steps); _reconcile takes those
+            # that start or come back later. Checked again, a failed step's executor would be retried at once.
+            self._reconciled = {name: ex.instance for name, ex in st.executors.items()}
             self.rollout = Rollout(steps)
             log.info("apply: new desired state, table v%d; executors to reload: %s", st.table.version,
                      [s.executor for s in steps])
@@ -257,11 +295,15 @@ class ControlPlane:
             load = msg.get("load")
             if load is not None and not isinstance(load, dict):
                 raise BadRequest(f"load: expected a map, got {_kind_of(load)}")
+            settings = msg.get("settings")
+            if settings is not None and not isinstance(settings, dict):
+                raise BadRequest(f"settings: expected a map, got {_kind_of(settings)}")
             st.register(name, str(msg.get("device", "")), models, limits=limits, instance=instance)
             log.info("executor %s registered on %s with %s (table v%d)", name, msg.get("device"),
                      sorted(models), st.table.version)
             if self.rollout is not None:
                 self.rollout.on_register(st, name, list(models), load)
+            self._reconcile(name, instance, settings)
             self._reply(peer, "registered", version=st.table.version)
         elif kind == "heartbeat":
             known = st.heartbeat(_name(msg, "executor"), dict(_mapping(msg, "depths")))

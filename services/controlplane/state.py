@@ -244,7 +244,7 @@ class ClusterState:
         expected = [e.name for e in self.cfg.executors]
         return {
             "executors": {n: {"device": e.device, "models": sorted(e.models), "depths": e.depths,
-                              "draining": self.routed_nothing_new(n),
+                              "draining": self.routed_nothing_new(n), "instance": e.instance,
                               "last_seen_s": round(now - e.last_seen, 3)} for n, e in self.executors.items()},
             "expected": expected,
             "table": self.table.to_wire(),

@@ -21,7 +21,7 @@ from services.executor.hosting import EngineSlot, Hosted, ModelStore, ServedInpu
 from services.executor.limits import measure_limits
 from services.executor.scheduler import Request, Result
 from shared import control
-from shared.config import ClusterConfig, ModelConfig, dial_address
+from shared.config import ClusterConfig, ModelConfig, dial_address, settings_digest
 from shared.metrics import ExecutorMetrics
 from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, RequestId, Timings, decode,
                              encode, error_frames, header_id, message_bytes, unpack_header)
@@ -188,7 +188,7 @@ class ExecutorIO:
     def register(self) -> None:
         self._ctl_send("register", executor=self.name, device=self.device, instance=self.instance,
                        models={n: s.info.to_wire() for n, s in self.served.items()}, limits=self.limits,
-                       load=self._load_outcome)
+                       load=self._load_outcome, settings={n: settings_digest(s.config) for n, s in self.served.items()})
         self._hello()
 
     def _hello(self) -> None:
