@@ -70,8 +70,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     cfg = load_or_exit(args.config)
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
+    # A stop (Ctrl-C, SIGTERM) at any point stops the fleet and the cluster, as `robion up` does.
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
     print(f"starting the cluster from {args.config} ...", flush=True)
     t0 = time.monotonic()
+    fleet: subprocess.Popen | None = None
     try:
         cluster.start(timeout_s=args.timeout)
         print(f"cluster ready in {time.monotonic() - t0:.1f} s; driving {cfg.fleet.robots} simulated robots at "
@@ -79,11 +82,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
         cmd = [sys.executable, "-m", "services.fleet.main", "--config", args.config, "--parent-pid", str(os.getpid())]
         if args.json:
             cmd += ["--json", args.json]
-        rc = subprocess.call(cmd)
+        fleet = subprocess.Popen(cmd, start_new_session=True)  # a terminal's Ctrl-C reaches us only; we stop it
+        rc = fleet.wait()
+    except KeyboardInterrupt:
+        print("robion demo: stopped", file=sys.stderr, flush=True)
+        rc = 130
     except (RuntimeError, TimeoutError) as exc:  # LocalCluster.start: a service exited, or not ready in time
         print(f"robion demo: {exc}", file=sys.stderr, flush=True)
         rc = 1
     finally:
+        if fleet is not None and fleet.poll() is None:
+            fleet.terminate()  # its report would describe a cluster being stopped under it
+            try:
+                fleet.wait(5)
+            except subprocess.TimeoutExpired:
+                fleet.kill()
         cluster.stop()
     return rc
 
@@ -97,7 +110,7 @@ def cmd_models(args: argparse.Namespace) -> int:
 def cmd_plan(args: argparse.Namespace) -> int:
     from services.controlplane.planning import main as plan_main
 
-    return plan_main(args.rest)
+    return plan_main(args.rest)  # its own parser: `robion plan --help` is its help
 
 
 BENCHMARKS = {"capacity": "capacity.py", "router-hop": "router_hop.py", "solver": "solver_speed.py",
@@ -108,6 +121,14 @@ BENCHMARKS = {"capacity": "capacity.py", "router-hop": "router_hop.py", "solver"
 def cmd_bench(args: argparse.Namespace) -> int:
     import runpy
 
+    if args.name is None:  # `robion bench`, `robion bench --help`: which benchmarks there are
+        asked = any(a in ("-h", "--help") for a in args.rest)
+        out = sys.stdout if asked else sys.stderr
+        print("usage: robion bench NAME [ARGS ...]; `robion bench NAME --help` for a benchmark's own options\n"
+              "benchmarks (scripts in bench/):", file=out)
+        for name, file in sorted(BENCHMARKS.items()):
+            print(f"  {name:<12} bench/{file}", file=out)
+        return 0 if asked else 2
     script = Path(__file__).resolve().parent.parent / "bench" / BENCHMARKS[args.name]
     if not script.exists():
         print(f"benchmark script {script} is missing (run from a source checkout)", file=sys.stderr)
@@ -138,7 +159,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         return 2
     if args.action == "apply":
         try:
-            text = Path(args.target).read_text()
+            text = Path(args.target).read_text(encoding="utf-8")
         except OSError as exc:
             print(f"robion ctl apply: cannot read {args.target}: {exc.strerror}", file=sys.stderr)
             return 2
@@ -200,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
 
     bench = sub.add_parser("bench", help="run a benchmark from bench/ (" + ", ".join(sorted(BENCHMARKS)) + ")",
                            add_help=False)
-    bench.add_argument("name", choices=sorted(BENCHMARKS))
+    bench.add_argument("name", nargs="?", choices=sorted(BENCHMARKS))
     bench.add_argument("rest", nargs=argparse.REMAINDER)
     bench.set_defaults(fn=cmd_bench)
 
@@ -214,7 +235,13 @@ def main(argv: list[str] | None = None) -> int:
                      help="apply: seconds to wait for the placement change to finish")
     ctl.set_defaults(fn=cmd_ctl)
 
-    args = p.parse_args(argv)
+    # `plan` and `bench` hand what follows them to their own parsers. argparse keeps an option-like first
+    # argument (`robion plan --help`) out of a REMAINDER, so it comes back here as an unknown one.
+    args, unknown = p.parse_known_args(argv)
+    if unknown:
+        if args.cmd not in ("plan", "bench"):
+            p.error(f"unrecognized arguments: {' '.join(unknown)}")
+        args.rest = unknown + args.rest
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s robion %(levelname)s %(message)s")
     return args.fn(args)
 

@@ -59,7 +59,10 @@ class LocalCluster:
     def _spawn(self, name: str, module: str, *extra: str) -> None:
         cmd = [sys.executable, "-m", module, "--config", self.config_path, "--log-level", self.log_level,
                "--parent-pid", str(os.getpid()), *extra]
-        self.procs[name] = subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
+        # A session of its own: a Ctrl-C at the terminal reaches the whole foreground process group, and the
+        # services would all stop at once; stop() stops them in order instead (executors first, so their last
+        # replies still go out through the router). They still exit when this process is gone (--parent-pid).
+        self.procs[name] = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, start_new_session=True)
 
     def start(self, timeout_s: float = 120.0) -> dict:
         """Start every process and block until the control plane reports the cluster ready."""

@@ -533,13 +533,22 @@ def config_from_dict(data: Any, folder: Path | None = None) -> ClusterConfig:
 def load_config(path: str | Path) -> ClusterConfig:
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:  # a Latin-1 comment, or a binary file named by mistake
+        raise ConfigError(f"{path}: not a UTF-8 text file (byte {exc.start})") from None
+    return config_from_text(text, str(path), path.resolve().parent)
+
+
+def config_from_text(text: str, source: str = "config", folder: Path | None = None) -> ClusterConfig:
+    """A checked config from YAML text (a file's, or one sent with `robion ctl apply`); ``source`` names it."""
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{path}: not valid YAML{where}") from None
-    return config_from_dict(data, path.resolve().parent)
+        raise ConfigError(f"{source}: not valid YAML{where}") from None
+    except RecursionError:  # PyYAML composes nested collections recursively
+        raise ConfigError(f"{source}: not valid YAML (nested too deeply)") from None
+    return config_from_dict(data, folder)

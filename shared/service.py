@@ -42,12 +42,26 @@ def setup_logging(name: str, level: str) -> None:
                         format=f"%(asctime)s {name} %(levelname)s %(name)s: %(message)s")
 
 
+def bind(sock: zmq.Socket, address: str, key: str) -> None:
+    """``sock.bind(address)``; a failure (the port taken by another process, an address not on this host) is
+    a ConfigError naming the config key, so the service exits 2 with one line instead of a traceback."""
+    try:
+        sock.bind(address)
+    except zmq.ZMQError as exc:
+        sock.close(linger=0)
+        raise ConfigError(f"{key} {address}: cannot bind ({exc.strerror})") from None
+
+
+def exit_on_config_error(exc: ConfigError) -> None:
+    print(f"config error: {exc}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def load_or_exit(path: str) -> ClusterConfig:
     try:
         return load_config(path)
     except ConfigError as exc:
-        print(f"config error: {exc}", file=sys.stderr)
-        raise SystemExit(2)
+        exit_on_config_error(exc)
 
 
 def stop_event(parent_pid: int = 0) -> threading.Event:

@@ -23,6 +23,18 @@ def executor_exit(path: Path, *args: str, env: dict | None = None, timeout_s: fl
                           capture_output=True, text=True, cwd=ROOT, env=env, timeout=timeout_s)
 
 
+def sigterm_after_line(proc: subprocess.Popen, stream, marker: str, delay_s: float) -> None:
+    """Read ``stream`` (a pipe of ``proc``) up to a line holding ``marker``, wait ``delay_s``, then stop the
+    process as a supervisor does (SIGTERM)."""
+    import signal
+
+    for line in stream:
+        if marker in line:
+            break
+    time.sleep(delay_s)
+    proc.send_signal(signal.SIGTERM)
+
+
 def changed(message: dict, changes: dict) -> dict:
     """A copy of ``message`` with ``changes`` applied; a change of None removes the field."""
     out = dict(message)

@@ -159,12 +159,10 @@ def test_limit_measurement_writes_nothing_to_the_serving_telemetry_file(tmp_path
 def test_a_stop_during_limit_measurement_ends_the_executor_promptly(tmp_path):
     """The start-up capacity search (minutes with the defaults) never looked at the stop: SIGTERM was honoured only
     once it was over, long after a container's grace period."""
-    import signal
     import subprocess
     import sys
-    import time
 
-    from tests.helpers import ROOT
+    from tests.helpers import ROOT, sigterm_after_line
 
     path, data = cluster_config(tmp_path, models=[{"name": "pi", "arch": "pi0", "size": "tiny", "slo_ms": 156}],
                                 executors=[{"name": "ex0", "device": "cpu", "models": ["pi"]}])
@@ -173,11 +171,7 @@ def test_a_stop_during_limit_measurement_ends_the_executor_promptly(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0"],
                             cwd=ROOT, stderr=subprocess.PIPE, text=True)
     try:
-        for line in proc.stderr:
-            if "measuring the robot limit" in line:
-                break
-        time.sleep(1.0)
-        proc.send_signal(signal.SIGTERM)
+        sigterm_after_line(proc, proc.stderr, "measuring the robot limit", 1.0)
         assert proc.wait(timeout=10) == 0  # docker's default grace period; one epoch is 3 s here
         assert not (tmp_path / "state" / "limits.json").exists()  # nothing cached from the cut search
     finally:

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.helpers import cluster_config
+from tests.helpers import cluster_config, sigterm_after_line
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -68,3 +68,96 @@ def test_a_cluster_not_ready_in_time_is_reported_without_traceback(tmp_path):
     res = run("shared.cli", "up", "-c", str(path), "--timeout", "0.2")
     assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr
     assert "robion up: cluster not ready within" in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize("argv, rc, expected", [
+    (("plan", "--help"), 0, "usage: robion plan"),
+    (("plan", "-h"), 0, "usage: robion plan"),
+    (("bench", "--help"), 0, "bench/capacity.py"),
+    (("bench",), 2, "bench/capacity.py"),
+    (("bench", "solver", "--help"), 0, "usage:"),
+])
+def test_the_subcommands_that_take_their_own_options_show_their_help(argv, rc, expected):
+    """`robion plan --help` was refused as an unrecognized argument, and `robion bench --help` asked for a name
+    without saying which ones there are."""
+    res = run("shared.cli", *argv)
+    assert res.returncode == rc and expected in res.stdout + res.stderr, (res.returncode, res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr
+
+
+def test_a_config_that_is_not_utf8_is_a_config_error(tmp_path):
+    path, _ = cluster_config(tmp_path)
+    path.write_bytes(b"# r\xe9glage usine\n" + path.read_bytes())  # a Latin-1 comment
+    for argv in (("shared.cli", "up", "-c", str(path)), ("shared.cli", "plan", str(path)),
+                 ("services.router.main", "-c", str(path))):
+        res = run(*argv)
+        assert res.returncode == 2 and "not a UTF-8 text file" in res.stderr, (argv, res.stderr[-2000:])
+        assert "Traceback" not in res.stderr, res.stderr[-2000:]
+
+
+def test_a_port_another_process_holds_is_named_and_exits_2(tmp_path):
+    """A router or control plane whose port was taken died with zmq's traceback."""
+    import zmq
+
+    path, data = cluster_config(tmp_path)
+    ctx = zmq.Context()
+    held = [ctx.socket(zmq.ROUTER) for _ in range(2)]
+    try:
+        held[0].bind(data["router"]["bind"])
+        held[1].bind(data["control"]["bind"])
+        for module, key in (("services.router.main", "router.bind"), ("services.controlplane.main", "control.bind")):
+            res = run(module, "-c", str(path))
+            assert res.returncode == 2 and key in res.stderr and "cannot bind" in res.stderr, res.stderr[-2000:]
+            assert "Traceback" not in res.stderr, res.stderr[-2000:]
+    finally:
+        ctx.destroy(0)
+
+
+def test_a_stopped_demo_stops_its_fleet_and_cluster(tmp_path):
+    """SIGTERM to `robion demo` left its fleet running against the stopped cluster, which then printed a report
+    of requests nobody answered."""
+    import time
+
+    path, data = cluster_config(tmp_path)
+    data["fleet"]["duration_s"] = 60
+    path.write_text(yaml.safe_dump(data))
+    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "demo", "-c", str(path)], cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        sigterm_after_line(proc, proc.stdout, "driving", 2.0)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode != 0 and "SLO-AT" not in out, (out, err[-2000:])
+        assert "Traceback" not in err, err[-2000:]
+        time.sleep(1.0)
+        left = subprocess.run(["pgrep", "-f", f"--parent-pid {proc.pid}"], capture_output=True, text=True).stdout
+        assert not left.strip(), f"processes of the demo still running: {left}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        subprocess.run(["pkill", "-f", f"--parent-pid {proc.pid}"])
+
+
+def test_ctrl_c_at_a_terminal_stops_the_services_in_order(tmp_path):
+    """A terminal's Ctrl-C reaches the whole foreground process group: every service stopped at once, and the
+    executors could not withdraw through a router that was already gone. The services now run in sessions of
+    their own, and `robion up` stops them in order, executors first."""
+    import os
+    import signal
+
+    path, _ = cluster_config(tmp_path)
+    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "--log-level", "INFO", "up", "-c", str(path)],
+                            cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        for line in proc.stdout:
+            if "robion is up" in line:
+                break
+        os.killpg(proc.pid, signal.SIGINT)  # what the terminal does on Ctrl-C
+        out, err = proc.communicate(timeout=60)
+        assert "withdrawn from routing" in err and "did not pick up" not in err, err[-3000:]
+        assert "'router': 0" in out and "'control': 0" in out, out
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()

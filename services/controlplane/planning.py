@@ -114,9 +114,11 @@ def load_planning_file(path: str | Path, headroom: float | None = None) -> PlanP
     Limits are cut to ``headroom`` of C_i (``with_headroom``): the given share, else a cluster
     config's ``control.headroom`` (what the control plane would plan with), else none."""
     try:
-        text = Path(path).read_text()
+        text = Path(path).read_text(encoding="utf-8")
     except OSError as e:
         raise PlanInputError("", f"cannot read file: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise PlanInputError("", f"not a UTF-8 text file (byte {e.start})") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:

@@ -8,16 +8,16 @@ import time
 from dataclasses import asdict
 from typing import Any
 
-import yaml
 import zmq
 
-from services.controlplane.rollout import Rollout, Step, plan_steps, restart_only_changes
+from services.controlplane.rollout import LIVE_CONTROL_FIELDS, Rollout, Step, plan_steps, restart_only_changes
 from services.controlplane.state import ClusterState
 from shared import control
-from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_dict, settings_digest
+from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_text, settings_digest
 from shared.control import ControlError
 from shared.metrics import ControlMetrics, serve
 from shared.protocol import ModelInfo, ProtocolError
+from shared.service import bind
 
 log = logging.getLogger("robion.control")
 
@@ -63,7 +63,7 @@ class ControlPlane:
         # crashed host), for as long as the new one lives: the restarted executor's registrations and
         # heartbeats were dropped unread, and it never rejoined routing.
         self.sock.setsockopt(zmq.ROUTER_HANDOVER, 1)
-        self.sock.bind(cfg.control.bind)
+        bind(self.sock, cfg.control.bind, "control.bind")
         self.metrics = ControlMetrics()
         serve(self.metrics.registry, cfg.control.metrics_port)
         self._published: set[str] = set()
@@ -208,16 +208,15 @@ class ControlPlane:
                 # str() of anything else would be parsed as YAML and blamed on the operator's file.
                 raise BadRequest(f"config: expected the config file's text (a string), got {_kind_of(text)}")
             try:
-                new = config_from_dict(yaml.safe_load(text))
+                new = config_from_text(text, "the applied file")
             except ConfigError as exc:
                 return self._error(peer, ControlError.BAD_CONFIG, f"config error: {exc}")
-            except (yaml.YAMLError, RecursionError):  # PyYAML composes nested collections recursively
-                return self._error(peer, ControlError.BAD_CONFIG, "config error: not valid YAML")
             fixed = restart_only_changes(st.cfg, new)
             if fixed:
-                return self._error(peer, ControlError.RESTART_REQUIRED, "apply changes models, placement, populations "
-                                   "and control.strategy live; these settings take effect only on restart, so nothing "
-                                   "was changed: " + "; ".join(fixed))
+                live = ", ".join(["models", "executors' models and memory_gb"]
+                                 + [f"control.{f}" for f in sorted(LIVE_CONTROL_FIELDS)])
+                return self._error(peer, ControlError.RESTART_REQUIRED, f"apply changes {live} live; these "
+                                   "settings take effect only on restart, so nothing was changed: " + "; ".join(fixed))
             steps = plan_steps(st.cfg, new, st)
             st.replace_config(new)
             st.settle()

@@ -21,7 +21,7 @@ from shared.control import RoutingTable, TableError
 from shared.metrics import RouterMetrics, serve
 from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode, error_frames,
                              header_id, max_frames, message_bytes, unpack_header)
-from shared.service import connected_again
+from shared.service import bind, connected_again
 
 log = logging.getLogger("robion.router")
 
@@ -83,7 +83,7 @@ class Router:
         self.frontend.setsockopt(zmq.MAXMSGSIZE, 2 * limit + 65536)
         self.frontend.setsockopt(zmq.LINGER, 0)
         self.frontend.setsockopt(zmq.ROUTER_HANDOVER, 1)  # a reconnecting robot keeps its identity
-        self.frontend.bind(cfg.router.bind)
+        bind(self.frontend, cfg.router.bind, "router.bind")
 
         self.backend = self.ctx.socket(zmq.ROUTER)
         # Unreachable executor -> EHOSTUNREACH, full pipe -> EAGAIN (sends are NOBLOCK): an error
@@ -91,7 +91,7 @@ class Router:
         self.backend.setsockopt(zmq.ROUTER_MANDATORY, 1)
         self.backend.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.backend.setsockopt(zmq.LINGER, 0)
-        self.backend.bind(cfg.router.backend)
+        bind(self.backend, cfg.router.backend, "router.backend")
 
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.LINGER, 0)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from shared.service import load_or_exit, service_args, setup_logging, stop_event
+from shared.config import ConfigError
+from shared.service import exit_on_config_error, load_or_exit, service_args, setup_logging, stop_event
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,8 +21,13 @@ def main(argv: list[str] | None = None) -> int:
 
     cfg = load_or_exit(args.config)
     context = zmq.Context()
+    try:
+        router = Router(cfg, context)
+    except ConfigError as exc:  # a port another process holds
+        context.destroy(linger=0)
+        exit_on_config_error(exc)
     # A signal that came during start-up leaves `stop` set: run() returns at once, closing cleanly.
-    Router(cfg, context).run(stop)
+    router.run(stop)
     # Waits for the answers the router sent while closing (bounded by its sockets' linger); exiting
     # without it could drop them.
     context.term()
