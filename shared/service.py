@@ -8,6 +8,7 @@ import os
 import signal
 import sys
 import threading
+from typing import Callable
 
 import zmq
 from zmq.utils.monitor import recv_monitor_message
@@ -75,13 +76,22 @@ def stop_event(parent_pid: int = 0) -> threading.Event:
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
     if parent_pid:
-        def watch():
-            while not stop.wait(0.5):
-                if os.getppid() != parent_pid:
-                    logging.getLogger("robion").warning("launcher %d is gone: shutting down", parent_pid)
-                    stop.set()
-        threading.Thread(target=watch, daemon=True, name="parent-watch").start()
+        watch_parent(parent_pid, stop.set, stop)
     return stop
+
+
+def watch_parent(parent_pid: int, on_gone: Callable[[], None], stop: threading.Event | None = None) -> None:
+    """Call ``on_gone`` once the launching process ``parent_pid`` is gone (checked every 0.5 s until ``stop``)."""
+    stop = stop or threading.Event()
+
+    def watch() -> None:
+        while not stop.wait(0.5):
+            if os.getppid() != parent_pid:
+                logging.getLogger("robion").warning("launcher %d is gone: shutting down", parent_pid)
+                on_gone()
+                return
+
+    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
 
 
 def connected_again(events: zmq.Socket) -> bool:

@@ -8,27 +8,13 @@ import logging
 import math
 import os
 import sys
-import threading
-import time
 
 from services.fleet.robots import check_settings, run_fleet
 from shared.client import RobionError
 from shared.config import dial_address, valid_address
-from shared.service import load_or_exit, log_level, setup_logging
+from shared.service import load_or_exit, log_level, setup_logging, watch_parent
 
 log = logging.getLogger("robion.fleet")
-
-
-def watch_parent(parent_pid: int) -> None:
-    """Exit once the launching process (`robion demo`) is gone: its cluster goes with it, and a report of
-    robots answered by nobody would only mislead. A load generator holds nothing worth a clean shutdown."""
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(0.5)
-        log.warning("launcher %d is gone: stopping the fleet", parent_pid)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,7 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     setup_logging("fleet", args.log_level)
     if args.parent_pid:
-        watch_parent(args.parent_pid)
+        # Its launcher (`robion demo`) gone, its cluster goes too: a report of robots answered by nobody would
+        # only mislead, and a load generator holds nothing worth a clean shutdown.
+        watch_parent(args.parent_pid, lambda: os._exit(1))
     cfg = load_or_exit(args.config)
     f = cfg.fleet
     address = args.address or dial_address(cfg.router.bind)
