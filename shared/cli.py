@@ -104,7 +104,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_models(args: argparse.Namespace) -> int:
     from shared.models.cli import main as models_main
 
-    return models_main(["--json"] if args.json else [])
+    return models_main(["--json"] * args.json + ["--size", args.size])
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -212,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     demo.set_defaults(fn=cmd_demo)
 
     models = sub.add_parser("models", help="list the registered VLA architectures")
-    models.add_argument("--json", action="store_true")
+    models.add_argument("--json", action="store_true", help="machine-readable output")
+    models.add_argument("--size", default="full", help="config size to describe (default: full)")
     models.set_defaults(fn=cmd_models)
 
     plan = sub.add_parser("plan", help="solve robot-to-GPU assignment without starting anything", add_help=False)

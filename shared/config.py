@@ -74,6 +74,8 @@ def _check(pred, text: str) -> dict[str, Any]:
 
 _ADDRESS = _check(valid_address, "expected an address like tcp://HOST:PORT, ipc://PATH or inproc://NAME")
 _SEED = _check(_seed, "expected a non-negative integer below 2**63")
+# An empty path would read as "no file" further on: random weights or byte ids served where a file was meant.
+_FILE = _check(lambda v: v.strip() != "", "expected a file path (leave the key out for none)")
 
 
 @dataclass
@@ -83,8 +85,8 @@ class ModelConfig:
     size: str = "tiny"  # "tiny" for CPU demos and tests, "full" for the published dimensions
     # seeded random weights; another seed is another fine-tuned variant
     seed: int = field(default=0, metadata=_SEED)
-    weights: str | None = None  # safetensors file of the model's own state dict
-    tokenizer: str | None = None  # tokenizer file; a byte-level tokenizer when absent
+    weights: str | None = field(default=None, metadata=_FILE)  # safetensors file of the model's own state dict
+    tokenizer: str | None = field(default=None, metadata=_FILE)  # tokenizer file; a byte-level tokenizer when absent
     slo_ms: float = field(default=156.0, metadata=_check(positive_number, "expected a positive number"))
     robots: int = field(default=0, metadata=_check(_non_negative, "expected a non-negative integer"))  # population N_i
     # request rate per robot

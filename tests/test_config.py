@@ -37,6 +37,8 @@ def test_defaults():
     (lambda d: d["models"][0].update(slo_ms=float("nan")), "models[0].slo_ms: expected a positive number"),
     (lambda d: d["models"][0].update(robots=float("inf")), "models[0].robots: expected"),
     (lambda d: d["models"][0].update(colour="red"), "models[0].colour: unknown key"),
+    (lambda d: d["models"][0].update(weights=""), "models[0].weights: expected a file path"),
+    (lambda d: d["models"][1].update(tokenizer=" "), "models[1].tokenizer: expected a file path"),
     (lambda d: d["models"][0].update(arch="gpt5"), "models[0].arch: unknown architecture 'gpt5'"),
     (lambda d: d["models"][0].update(size="huge"), "models[0].size: toy has no size 'huge'"),
     (lambda d: d["models"][1].update(name="a"), "models[1].name: duplicate name 'a'"),

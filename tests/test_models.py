@@ -1,12 +1,15 @@
 """The model zoo on the CPU: tiny configs for behaviour, full configs on the meta device for sizes."""
 
 import dataclasses
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
 
-from shared.models import build_model, get_architecture, register
+from shared.models import ModelIO, VLAModel, build_model, get_architecture, register
 from shared.models.registry import _ARCHS, build_meta
 
 ARCHS = ["pi0", "smolvla", "groot_n15", "xr0"]
@@ -131,7 +134,59 @@ def test_user_registered_architecture():
         assert m.action_stage(m.vlm_stage(images, state, tokens), m.noise(2)).shape == (2, 10, 7)
         listed = describe()
         assert listed["my_test_vla"]["action_params"] > 0 and "toy" not in listed
-        with pytest.raises(ValueError):
-            register("my_test_vla")(ToyVLA)
+        with pytest.raises(ValueError, match="'my_test_vla' is already registered"):
+            register("my_test_vla")(type("Other", (ToyVLA,), {}))
+        with pytest.raises(ValueError, match="MyVLA is already registered as 'my_test_vla'"):
+            register("my_test_vla_2")(MyVLA)  # one class under two names would rename the first
+        assert build_model("my_test_vla", "tiny").arch == "my_test_vla" and "my_test_vla_2" not in _ARCHS
+        with pytest.raises(ValueError, match=r"'pi0' is already registered \(by shared.models.pi0\)"):
+            register("pi0")(type("MyPi0", (ToyVLA,), {}))
     finally:
         _ARCHS.pop("my_test_vla", None)
+
+
+class _StockLayers(VLAModel):
+    """A user's model as people write them: stock layers that initialise in _reset_parameters, a buffer, a
+    bare parameter, and no init_weights of its own."""
+
+    CONFIGS = {"tiny": 16}
+
+    def __init__(self, width: int):
+        super().__init__()
+        self.io = ModelIO(cameras=("base",), image_shape=(8, 8, 3), state_dim=4, prompt_len=4, horizon=3,
+                          action_dim=2, steps=2)
+        self.attn = torch.nn.TransformerEncoderLayer(width, 2, 32, batch_first=True)
+        self.query = torch.nn.Parameter(torch.randn(3, width) * 0.02)
+        self.register_buffer("scale", torch.full((width,), 0.5))
+        self.head = torch.nn.Linear(width, 2)
+
+
+def test_user_model_weights_are_seeded_and_initialised():
+    register("test_stock_layers")(_StockLayers)
+    try:
+        a, b, c = (build_model("test_stock_layers", "tiny", seed=s) for s in (3, 3, 4))
+        for key, value in a.state_dict().items():
+            assert torch.isfinite(value).all(), key
+            torch.testing.assert_close(b.state_dict()[key], value, atol=0, rtol=0)  # same seed, same weights
+        torch.testing.assert_close(a.scale, torch.full((16,), 0.5))  # the constructor's buffer, not raw memory
+        assert a.attn.self_attn.in_proj_weight.abs().max() > 0  # _reset_parameters ran (xavier), not zeros
+        assert not torch.equal(a.attn.self_attn.in_proj_weight, c.attn.self_attn.in_proj_weight)
+        assert not torch.equal(a.query, c.query)
+    finally:
+        _ARCHS.pop("test_stock_layers", None)
+
+
+def test_user_module_taking_a_builtin_name_is_a_config_error(tmp_path):
+    # A fresh process, as `robion up` is: the config's imports run before any built-in architecture is loaded.
+    (tmp_path / "takes_pi0.py").write_text(
+        "from shared.models import register\nfrom shared.models.toy import ToyVLA\n\n"
+        "@register('pi0')\nclass MyPi0(ToyVLA):\n    pass\n")
+    (tmp_path / "cluster.yaml").write_text(
+        "imports: [takes_pi0]\nmodels:\n  - {name: a, arch: pi0}\nexecutors:\n  - {name: e0, models: [a]}\n")
+    code = ("import sys\nfrom shared.config import ConfigError, load_config\n"
+            "try:\n    load_config(sys.argv[1])\nexcept ConfigError as exc:\n    print('ConfigError:', exc)\n")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "cluster.yaml")], capture_output=True, text=True,
+                         timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0, out.stderr
+    assert ("ConfigError: imports[0]: cannot import 'takes_pi0' (ValueError: architecture 'pi0' is already "
+            "registered (by shared.models.pi0))") in out.stdout

@@ -60,6 +60,28 @@ def test_tokenizer_file_errors(tmp_path, monkeypatch):
         PromptTokenizer(8, 100, path=str(js))
 
 
+def test_tokenizer_path_forms(tmp_path):
+    with pytest.raises(FileNotFoundError, match="tokenizer file not found"):
+        PromptTokenizer(8, 100, path="")  # an empty path is no file, not the byte-level fallback
+    with pytest.raises(FileNotFoundError, match="tokenizer file not found"):
+        PromptTokenizer(8, 100, path=tmp_path / "missing.model")  # a pathlib.Path is a path too
+
+
+def test_real_tokenizer_sentencepiece(tmp_path):
+    spm = pytest.importorskip("sentencepiece")
+    lines = ["pick up the red cup", "open the top drawer", "put the cup in the drawer"] * 20
+    spm.SentencePieceTrainer.train(sentence_iterator=iter(lines), model_prefix=str(tmp_path / "sp"), vocab_size=13,
+                                   model_type="word", bos_id=1, eos_id=-1, pad_id=0, unk_id=2,
+                                   minloglevel=2)
+    sp = spm.SentencePieceProcessor(model_file=str(tmp_path / "sp.model"))
+    tok = PromptTokenizer(8, 100, path=tmp_path / "sp.model")
+    ids = tok("pick up the cup").tolist()
+    assert ids == ([1] + sp.encode("pick up the cup") + [0] * 8)[:8]
+    assert ids[1:5] != [0, 0, 0, 0] and len(set(ids[1:5])) == 4  # four known words, four ids
+    with pytest.raises(ValueError, match="vocabulary"):
+        PromptTokenizer(8, 10, path=str(tmp_path / "sp.model"))
+
+
 def test_real_tokenizer_json(tmp_path):
     tokenizers = pytest.importorskip("tokenizers")
     from tokenizers.models import WordLevel
@@ -90,8 +112,10 @@ def test_weights_round_trip_is_a_fine_tuned_variant(tmp_path):
         want = a.action_stage(a.vlm_stage(images, state, tokens), noise)
     assert not torch.allclose(before, want)
     torch.testing.assert_close(after, want, atol=0, rtol=0)
-    c = load_model("pi0", "tiny", path=path)
-    torch.testing.assert_close(c.state_dict()["expert.norm.weight"], a.state_dict()["expert.norm.weight"])
+    c = load_model("pi0", "tiny", path=path)  # built with seed 0, then every tensor from the file
+    for key, value in a.state_dict().items():
+        torch.testing.assert_close(c.state_dict()[key], value, atol=0, rtol=0)
+    assert not torch.equal(build_model("pi0", "tiny").state_dict()["embed.weight"], a.state_dict()["embed.weight"])
 
 
 def test_weights_errors(tmp_path):
@@ -122,6 +146,25 @@ def test_weights_errors(tmp_path):
     with pytest.raises(WeightsError, match="saved from 'smolvla', model is 'xr0'"):
         load_weights(m, str(tmp_path / "other.safetensors"))
 
+    # A cast would turn these into weights: integers, and a value beyond float32 (inf), or a NaN.
+    ints = dict(sd, **{"dit.sink": torch.ones_like(sd["dit.sink"], dtype=torch.int32)})
+    save_file(ints, str(tmp_path / "ints.safetensors"))
+    with pytest.raises(WeightsError, match=r"cannot hold floating-point weights: dit.sink: file I32 vs model float32"):
+        load_weights(m, str(tmp_path / "ints.safetensors"))
+    for bad_value in (1e39, float("nan")):
+        huge = dict(sd, **{"dit.sink": torch.full(sd["dit.sink"].shape, bad_value, dtype=torch.float64)})
+        save_file(huge, str(tmp_path / "huge.safetensors"))
+        with pytest.raises(WeightsError, match="dit.sink holds NaN or infinite values as float32"):
+            load_weights(m, str(tmp_path / "huge.safetensors"))
+    torch.testing.assert_close(m.state_dict()["embed.weight"], before)
+    assert torch.isfinite(m.state_dict()["dit.sink"]).all()
+
+    (tmp_path / "torch.pt").write_bytes(b"PK\x03\x04" + bytes(64))  # a zip (torch.save) checkpoint, not safetensors
+    (tmp_path / "cut.safetensors").write_bytes((tmp_path / "other.safetensors").read_bytes()[:100])
+    for name in ("torch.pt", "cut.safetensors"):
+        with pytest.raises(WeightsError, match="not a safetensors file"):
+            load_weights(m, str(tmp_path / name))
+
 
 # --------------------------------------------------------------------------- CLI
 
@@ -139,3 +182,37 @@ def test_models_cli_table(capsys):
     assert models_main([]) == 0
     out = capsys.readouterr().out
     assert "pi0" in out and "xr0" in out and "VLM params" in out
+    pi0 = next(line.split() for line in out.splitlines() if line.startswith("pi0 "))
+    assert pi0[1:3] == ["2.92B", "315M"]
+    assert models_main(["--size", "tiny"]) == 0
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]}
+    assert rows["pi0"][1].endswith("K") and rows["pi0"][2] != "0.0M"  # small stages keep their digits
+
+
+def test_models_cli_names_what_it_cannot_list(capsys, monkeypatch):
+    from shared.models import VLAModel, register
+    from shared.models.registry import _ARCHS
+    from shared.models.toy import ToyVLA
+
+    class MetaHostile(VLAModel):
+        CONFIGS = {"full": None}
+
+        def __init__(self, cfg):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(3))
+            self.w.sum().item()  # not on the meta device
+
+    register("test_meta_hostile")(MetaHostile)
+    register("test_tiny_only")(type("TinyOnly", (ToyVLA,), {"CONFIGS": {"tiny": ToyVLA.CONFIGS["tiny"]}}))
+    try:
+        assert models_main(["--json"]) == 1
+        captured = capsys.readouterr()
+        listed = json.loads(captured.out)
+        assert {"pi0", "smolvla", "groot_n15", "xr0"} <= set(listed)  # the rest still listed
+        assert "test_meta_hostile: cannot be described" in captured.err
+        assert "test_tiny_only: no size 'full' (sizes: tiny)" in captured.err
+        assert models_main(["--json", "--size", "tiny"]) == 0  # the hostile one has no tiny size: only a note
+        assert "test_tiny_only" in json.loads(capsys.readouterr().out)
+    finally:
+        _ARCHS.pop("test_meta_hostile", None)
+        _ARCHS.pop("test_tiny_only", None)

@@ -65,7 +65,7 @@ class ModelStore:
             key = _weights_key(mc)
             if key not in self._loaded:
                 model = build_model(mc.arch, mc.size, seed=mc.seed, device=self.device)
-                if mc.weights:
+                if mc.weights is not None:
                     from shared.models.weights import load_weights
 
                     load_weights(model, mc.weights)

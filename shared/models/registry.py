@@ -10,18 +10,31 @@ import torch
 from shared.models.base import VLAModel
 
 _ARCHS: dict[str, type[VLAModel]] = {}
+BUILTIN_MODULES = ("shared.models.groot_n15", "shared.models.pi0", "shared.models.smolvla", "shared.models.toy",
+                   "shared.models.xr0")
 
 
 def register(name: str):
     """Class decorator: ``@register("my_vla")`` makes an architecture servable by name.
 
     The class needs a ``CONFIGS`` dict mapping size names ("full", "tiny", ...) to its
-    config dataclass and a constructor taking that config.
+    config dataclass (a "full" size is what ``robion models`` lists) and a constructor
+    taking that config. A name already taken, the built-ins' included, is refused here,
+    in the module that registers it.
     """
 
     def wrap(cls: type[VLAModel]) -> type[VLAModel]:
+        if cls.__module__ not in BUILTIN_MODULES:
+            # The built-ins first: a user's module imported before them could otherwise take "pi0", and the
+            # clash would surface later as an error inside shared/models/pi0.py, blaming the wrong module.
+            _load_builtin_archs()
         if name in _ARCHS and _ARCHS[name] is not cls:
-            raise ValueError(f"architecture {name!r} is already registered")
+            raise ValueError(f"architecture {name!r} is already registered (by {_ARCHS[name].__module__})")
+        if cls.__dict__.get("arch") and cls.__dict__["arch"] != name:
+            # One class under two names would rename the first: its models would report, and save into their
+            # weight files, the second name.
+            raise ValueError(f"{cls.__name__} is already registered as {cls.__dict__['arch']!r}; "
+                             f"subclass it to register it as {name!r} too")
         cls.arch = name
         _ARCHS[name] = cls
         return cls
@@ -53,12 +66,24 @@ def build_model(arch: str, size: str = "tiny", seed: int = 0, device: str | torc
         device = torch.device("cuda", torch.cuda.current_device())
     if dtype is None:
         dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
-    # Build on the meta device and materialise straight in the target dtype on the target
-    # device: a 4.7 B-parameter model never exists as fp32 on the host.
+    generator = torch.Generator(device).manual_seed(seed)
     with torch.device("meta"):
         model = cls(configs[size])
-    model = model.to(dtype=dtype).to_empty(device=device)
-    model.init_weights(torch.Generator(device).manual_seed(seed))
+    if type(model).init_weights is not VLAModel.init_weights and next(model.buffers(), None) is None:
+        # Its own init sets every parameter: build on the meta device and materialise straight in the target
+        # dtype on the target device, so a 4.7 B-parameter model never exists as fp32 on the host.
+        model = model.to(dtype=dtype).to_empty(device=device)
+    else:
+        # Memory from to_empty is uninitialised, and only a constructor knows how to fill what the default
+        # init (reset_parameters) does not reach: buffers, bare nn.Parameters, layers such as
+        # nn.MultiheadAttention that initialise in _reset_parameters. Such a model is constructed for real,
+        # on its device under the seed (same seed, same weights), then cast.
+        devices = [device.index] if device.type == "cuda" else []
+        with torch.random.fork_rng(devices=devices), torch.device(device):
+            torch.manual_seed(seed)
+            model = cls(configs[size])
+        model = model.to(dtype=dtype)
+    model.init_weights(generator)
     return model.eval().requires_grad_(False)
 
 
@@ -69,14 +94,14 @@ def build_meta(arch: str, size: str = "full") -> VLAModel:
         return cls(cls.CONFIGS[size])
 
 
-def _load_builtin() -> None:
+def _load_builtin_archs() -> None:
     # Importing the architecture modules runs their @register decorators.
-    import shared.models.groot_n15  # noqa: F401
-    import shared.models.pi0  # noqa: F401
-    import shared.models.smolvla  # noqa: F401
-    import shared.models.toy  # noqa: F401
-    import shared.models.xr0  # noqa: F401
+    for module in BUILTIN_MODULES:
+        importlib.import_module(module)
 
+
+def _load_builtin() -> None:
+    _load_builtin_archs()
     # A user's own architectures, for tools run without a config (`robion models`): the modules named in
     # ROBION_IMPORTS (comma-separated). A config lists them under `imports` (shared/config.py).
     for name in filter(None, (n.strip() for n in os.environ.get("ROBION_IMPORTS", "").split(","))):

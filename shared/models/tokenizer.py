@@ -23,16 +23,19 @@ _BYTE_OFFSET = 2  # ids 0 and 1 are pad and BOS
 class PromptTokenizer:
     """Encodes prompts to ``prompt_len`` ids: BOS + text, right-padded with ``pad_id`` or truncated."""
 
-    def __init__(self, prompt_len: int, vocab_size: int, path: str | None = None, pad_id: int = PAD_ID,
+    def __init__(self, prompt_len: int, vocab_size: int, path: str | os.PathLike | None = None, pad_id: int = PAD_ID,
                  cache_size: int = 1024):
         if prompt_len < 1:
             raise ValueError("prompt_len must be >= 1")
+        # A str or a path-like; "" is a file name that does not exist, not "no tokenizer" (a config's empty value
+        # must not quietly serve byte ids to a model trained on real ones).
+        path = os.fspath(path) if path is not None else None
         self.prompt_len, self.vocab_size, self.path, self.pad_id = prompt_len, vocab_size, path, pad_id
         self.cache_size = cache_size
         self._cache: OrderedDict[str, tuple[int, ...]] = OrderedDict()
         self._lock = Lock()  # the executor's I/O thread and others may share one tokenizer
         self.hits = self.misses = 0
-        self._encode = self._load(path) if path else self._bytes
+        self._encode = self._load(path) if path is not None else self._bytes
 
     @classmethod
     def for_model(cls, model, path: str | None = None, cache_size: int = 1024) -> "PromptTokenizer":

@@ -17,7 +17,12 @@ from shared.models.registry import build_model
 
 
 class WeightsError(ValueError):
-    """A checkpoint does not match the model: missing or unexpected keys, or wrong shapes."""
+    """A checkpoint does not match the model: missing or unexpected keys, wrong shapes or dtypes, values that
+    are not finite."""
+
+
+# safetensors dtype names of floating-point tensors (the file's header, as get_slice().get_dtype() gives it).
+FLOAT_DTYPES = {"F64", "F32", "F16", "BF16", "F8_E4M3", "F8_E5M2"}
 
 
 def _names(names: list[str], limit: int = 8) -> str:
@@ -38,8 +43,9 @@ def load_weights(model: VLAModel, path: str) -> VLAModel:
     """Load a safetensors file into ``model`` in place; keys and shapes must match exactly.
 
     Tensors are cast to each parameter's dtype and device. Raises FileNotFoundError or
-    WeightsError (naming the offending keys, or saying the file is no safetensors file) and
-    leaves the model untouched on error.
+    WeightsError (naming the offending keys, shapes or dtypes, a tensor whose values are not finite
+    in the parameter's dtype, or saying the file is no safetensors file) and leaves the model
+    untouched on error.
     """
     from safetensors import SafetensorError, safe_open
 
@@ -62,18 +68,32 @@ def load_weights(model: VLAModel, path: str) -> VLAModel:
             problems.append(f"{len(missing)} missing key(s): {_names(missing)}")
         if unexpected:
             problems.append(f"{len(unexpected)} unexpected key(s): {_names(unexpected)}")
-        bad = []
+        bad, kinds = [], []
         for k in sorted(keys & set(expected)):
-            shape = tuple(f.get_slice(k).get_shape())
+            part = f.get_slice(k)
+            shape = tuple(part.get_shape())
             if shape != tuple(expected[k].shape):
                 bad.append(f"{k}: file {list(shape)} vs model {list(expected[k].shape)}")
+            # A cast cannot turn integers, booleans or scale-only formats into trained floating-point weights:
+            # such a tensor is another file's, or a corrupted one.
+            if expected[k].dtype.is_floating_point and part.get_dtype() not in FLOAT_DTYPES:
+                kinds.append(f"{k}: file {part.get_dtype()} vs model {str(expected[k].dtype).removeprefix('torch.')}")
         if bad:
             problems.append(f"{len(bad)} shape mismatch(es): " + "; ".join(bad[:8]) +
                             (f"; ... ({len(bad) - 8} more)" if len(bad) > 8 else ""))
+        if kinds:
+            problems.append(f"{len(kinds)} tensor(s) of a dtype that cannot hold floating-point weights: " + "; ".join(kinds[:8]) +
+                            (f"; ... ({len(kinds) - 8} more)" if len(kinds) > 8 else ""))
         if problems:
             arch = meta.get("arch")
             hint = f" (file was saved from {arch!r}, model is {model.arch!r})" if arch and arch != model.arch else ""
             raise WeightsError(f"{path} does not fit {model.arch or type(model).__name__}{hint}: " + " | ".join(problems))
+        # Checked before any parameter changes, so a bad file leaves the model as it was: a NaN in the file, or a
+        # value beyond the range of the parameter's dtype (a float64 1e39 is inf as float32 or bf16), would make
+        # every reply NaN actions. Two passes, one tensor at a time, rather than a staged copy of the whole model.
+        for k, dst in expected.items():
+            if dst.is_floating_point() and not bool(torch.isfinite(f.get_tensor(k).to(dst.device, dst.dtype)).all()):
+                raise WeightsError(f"{path}: {k} holds NaN or infinite values as {str(dst.dtype).removeprefix('torch.')}")
         with torch.no_grad():
             for k, dst in expected.items():
                 dst.copy_(f.get_tensor(k).to(dtype=dst.dtype))
@@ -84,4 +104,4 @@ def load_model(arch: str, size: str = "full", path: str | None = None, seed: int
                device: str | torch.device = "cpu", dtype: torch.dtype | None = None) -> VLAModel:
     """Build an architecture and, when ``path`` is given, load its weights from that file."""
     model = build_model(arch, size, seed=seed, device=device, dtype=dtype)
-    return load_weights(model, path) if path else model
+    return load_weights(model, path) if path is not None else model
