@@ -23,6 +23,7 @@ import dataclasses
 import datetime
 import json
 import logging
+import math
 import os
 import platform
 import subprocess
@@ -180,6 +181,9 @@ class Report:
         self.doc["complete"][model] = {e: True for e in results}
         self.doc["curves"][model] = {e: [_point_dict(p) for p in sorted(r.points, key=lambda p: p.robots)]
                                      for e, r in results.items()}
+        # Replaced as a whole, like the capacities: ratios of an earlier run (--merge) against engines this run
+        # did not measure would contradict them.
+        self.doc["ratios"].pop(model, None)
         if baseline in results:
             base = results[baseline].capacity
             self.doc["ratios"][model] = {f"{e}/{baseline}": (r.capacity / base if base else None)
@@ -280,6 +284,28 @@ def plot(doc: dict, path: Path) -> bool:
     return True
 
 
+def bad_arguments(args: argparse.Namespace, robots: list[int] | None) -> str | None:
+    """What is wrong with the measurement arguments, if anything: found before minutes of model building."""
+    if not (math.isfinite(args.hz) and args.hz > 0):
+        return f"--hz: expected a positive rate, got {args.hz}"
+    if args.epochs < 1:
+        return f"--epochs: expected at least 1, got {args.epochs}"
+    if not (math.isfinite(args.duration) and args.duration >= 1 / args.hz):
+        # Shorter, and a robot whose random start falls after the window sends nothing: points without requests.
+        return f"--duration: expected at least one period (1 / --hz = {1 / args.hz:g} s), got {args.duration}"
+    if not (math.isfinite(args.drain) and args.drain >= 0):
+        return f"--drain: expected a non-negative number of seconds, got {args.drain}"
+    if not 0 < args.target <= 1:
+        return f"--target: expected a share in (0, 1], got {args.target}"
+    if args.screen_epochs < 0:
+        return f"--screen-epochs: expected 0 or more, got {args.screen_epochs}"
+    if args.start < 1 or args.max_robots < args.start:
+        return f"--start and --max-robots: expected 1 <= start <= max-robots, got {args.start} and {args.max_robots}"
+    if robots is not None and (not robots or min(robots) < 1):
+        return f"--sweep: expected robot counts of at least 1, got {args.sweep!r}"
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", help="comma-separated architectures, or name=arch (required unless --replot)")
@@ -325,23 +351,30 @@ def main(argv: list[str] | None = None) -> int:
     if not args.models:
         raise SystemExit("--models is required")
 
+    robots = [int(x) for x in args.sweep.split(",") if x.strip()] if args.sweep else None
+    problem = bad_arguments(args, robots)
+    if problem:
+        p.error(problem)  # before any model is built
     models = parse_models(args.models)
     engines = parse_engines(args.engines, args.max_batch)
     deadlines = parse_deadlines(args.deadline)
-    robots = [int(x) for x in args.sweep.split(",") if x.strip()] if args.sweep else None
     labels = [e.label for e in engines]
     baseline = args.baseline or ("monolithic" if "monolithic" in labels else None)
     if baseline is not None and baseline not in labels:
         raise SystemExit(f"--baseline {baseline!r} is not one of the engines {labels}")
     sim = SimConfig(epochs=args.epochs, duration_s=args.duration, drain_s=args.drain, seed=args.seed,
                     network=args.network)
+    # What the search really does, as recorded: a sweep measures every point with all epochs (docs/capacity.md),
+    # and screening with as many epochs as a full point is no screening.
+    early_stop = robots is None and not args.no_early_stop
+    screen_epochs = args.screen_epochs if robots is None and 0 < args.screen_epochs < args.epochs else None
 
     settings = {
         "target": args.target, "hz": args.hz, "epochs": args.epochs, "duration_s": args.duration,
         "drain_s": args.drain, "network": args.network, "max_batch": args.max_batch, "size": args.size,
         "device": args.device, "seed": args.seed, "mode": "sweep" if robots else "search",
-        "sweep": robots, "screen_epochs": args.screen_epochs or None, "start": args.start,
-        "max_robots": args.max_robots, "early_stop": not args.no_early_stop,
+        "sweep": robots, "screen_epochs": screen_epochs, "start": args.start,
+        "max_robots": args.max_robots, "early_stop": early_stop,
         "reuse_engine": not args.no_reuse, "baseline": baseline,
         "models": models, "engines": {e.label: {"kind": e.kind, **e.overrides} for e in engines},
     }
@@ -356,9 +389,9 @@ def main(argv: list[str] | None = None) -> int:
                                      reuse=not args.no_reuse, label=e.label) for e in engines}
         try:
             results = compare_capacity(hosts, name, args.hz, sim, args.target, robots, args.start, args.max_robots,
-                                       early_stop=not args.no_early_stop, progress=not args.quiet,
+                                       early_stop=early_stop, progress=not args.quiet,
                                        on_point=lambda engine, pt, m=name: report.point(m, engine, pt),
-                                       screen_epochs=args.screen_epochs or None)
+                                       screen_epochs=screen_epochs)
         finally:
             for h in hosts.values():
                 h.close()

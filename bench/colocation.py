@@ -117,12 +117,15 @@ def summary(rows: list[dict], experiment: str) -> dict:
     for r in rows:
         by_engine.setdefault(r["engine"], []).append(r["miss_ratio"] if experiment == "e4" else r["slo_attainment"])
     means = {e: sum(v) / len(v) for e, v in by_engine.items()}
+
+    def ratio(a: str, b: str) -> float | None:
+        """means[a] / means[b]; None (null) where it is undefined: an engine missing, or b at 0 (Robion
+        missing nothing), which no finite ratio describes. JSON has no Infinity."""
+        return means[a] / means[b] if a in means and means.get(b) else None
+
     if experiment == "e4":
-        ratio = means["monolithic"] / means["robion"] if means.get("robion") else float("inf")
-        return {"mean_miss_ratio": means, "monolithic_over_robion": ratio}
-    return {"mean_slo_attainment": means,
-            "esf_over_rr": means["esf"] / means["rr"] if means.get("rr") else float("inf"),
-            "esf_over_lqf": means["esf"] / means["lqf"] if means.get("lqf") else float("inf")}
+        return {"mean_miss_ratio": means, "monolithic_over_robion": ratio("monolithic", "robion")}
+    return {"mean_slo_attainment": means, "esf_over_rr": ratio("esf", "rr"), "esf_over_lqf": ratio("esf", "lqf")}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hz", type=float, default=2.0)
     p.add_argument("--max-batch", type=int, default=2)
     p.add_argument("--sm-table", default=None)
-    p.add_argument("--epochs", type=int, default=3)
+    p.add_argument("--epochs", type=int, default=5)
     p.add_argument("--duration", type=float, default=10.0)
     p.add_argument("--deadline", type=float, default=156.0, help="deadline for architectures the paper has none for")
     p.add_argument("--seed", type=int, default=0)
@@ -147,10 +150,13 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     result = run(args)
     result["meta"]["wall_s"] = round(time.monotonic() - t0, 1)
+    from services.executor.simulation import _json_safe
+
     if args.out:
         with open(args.out, "w") as fh:
-            json.dump(result, fh, indent=2)
-    print(json.dumps(result["summary"], indent=1))
+            # NaN (an empty workload's attainment) is no JSON either: null, and strict parsers read the file.
+            json.dump(_json_safe(result), fh, indent=2, allow_nan=False)
+    print(json.dumps(_json_safe(result["summary"]), indent=1, allow_nan=False))
     return 0
 
 

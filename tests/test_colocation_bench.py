@@ -5,10 +5,12 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from colocation import split  # noqa: E402
+from colocation import split, summary  # noqa: E402
 
 
 def test_split_keeps_totals_and_proportions():
@@ -17,13 +19,21 @@ def test_split_keeps_totals_and_proportions():
     assert sum(split(13, [2, 1, 1])) == 13
 
 
+def test_summary_ratios_are_null_where_undefined():
+    rows = [{"engine": "robion", "miss_ratio": 0.0}, {"engine": "monolithic", "miss_ratio": 0.25}]
+    assert summary(rows, "e4") == {"mean_miss_ratio": {"robion": 0.0, "monolithic": 0.25},
+                                   "monolithic_over_robion": None}  # Robion missed nothing: no finite ratio
+    rows = [{"engine": "esf", "slo_attainment": 0.9}, {"engine": "rr", "slo_attainment": 0.6}]
+    assert summary(rows, "e5")["esf_over_rr"] == 1.5 and summary(rows, "e5")["esf_over_lqf"] is None
+
+
 def run(tmp_path, *args):
     out = tmp_path / "r.json"
     res = subprocess.run([sys.executable, "bench/colocation.py", *args, "--size", "tiny", "--device", "cpu",
                           "--epochs", "1", "--duration", "1", "--out", str(out)], cwd=ROOT, capture_output=True,
                          text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
-    return json.loads(out.read_text())
+    return json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
 
 
 def test_e4_runs_both_engines_on_the_same_workload(tmp_path):

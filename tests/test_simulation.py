@@ -156,6 +156,52 @@ def test_requests_still_queued_at_the_end_are_answered_as_errors(toy):
 
 
 
+class _Delayed(Engine):
+    """Answers each batch after ``delay_s`` of real time; ``late_stamp``: stamps the result before the delay, as an
+    engine that hands results over after it stamped them would."""
+
+    def __init__(self, models, cfg, device, on_results, delay_s: float, late_stamp: bool):
+        super().__init__(models, cfg, device, on_results)
+        self.delay_s, self.late_stamp = delay_s, late_stamp
+
+    def step(self) -> bool:
+        _, batch, _ = self.queues.take(self.cfg.max_batch)
+        if not batch:
+            return False
+        stamped = time.monotonic()
+        time.sleep(self.delay_s)
+        io = self.models[batch[0].model].model.io
+        done = stamped if self.late_stamp else time.monotonic()
+        self.on_results([Result(r, actions=np.zeros((io.horizon, io.action_dim), np.float32), done=done)
+                         for r in batch])
+        return True
+
+
+def test_reply_time_is_when_the_harness_has_the_reply(toy):
+    cfg = EngineConfig(max_batch=4, shed_expired=False)
+    res = simulate(lambda sink: _Delayed(served(toy, 500), cfg, CPU, sink, 0.04, late_stamp=True),
+                   [RobotGroup("toy", 2, 5.0)], SimConfig(epochs=1, duration_s=0.4, drain_s=0.3, network="none"))
+    s = res.models["toy"]
+    assert s.ok == s.sent > 0 and s.p50_ms >= 39  # not the engine's stamp, 40 ms earlier
+
+
+def test_the_epoch_waits_out_the_deadline_of_its_last_request(toy):
+    # A drain shorter than the deadline must not stop the engine on requests that can still be answered in time.
+    cfg = EngineConfig(max_batch=4, shed_expired=False)
+    res = simulate(lambda sink: _Delayed(served(toy, 400), cfg, CPU, sink, 0.08, late_stamp=False),
+                   [RobotGroup("toy", 3, 10.0)], SimConfig(epochs=2, duration_s=0.3, drain_s=0.0, network="none"))
+    s = res.models["toy"]
+    assert s.sent > 0 and s.errors == {} and s.met == s.sent and s.slo_attainment == 1.0
+
+
+def test_robot_groups_refuse_rates_that_send_nothing():
+    for hz in (0.0, -2.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="hz > 0"):
+            RobotGroup("toy", 2, hz)
+    with pytest.raises(ValueError, match="robots >= 0"):
+        RobotGroup("toy", -1, 2.0)
+
+
 def test_a_reused_engine_takes_requests_before_its_thread_gets_going(toy):
     # The previous epoch's finish closes the queues (a submit after an engine stopped is refused
     # UNAVAILABLE); the host reopens them before the next epoch, not only the engine's thread, which
@@ -189,14 +235,13 @@ def test_search_finds_a_monotone_threshold(threshold, start, max_robots):
     assert len({p.robots for p in s.points}) == len(s.points)
 
 
-def test_search_trusts_a_failure_below_a_pass():
+def test_search_bisects_between_the_largest_pass_and_the_smallest_failure():
     s = CapacitySearch(0.98, 1, 64)
     outcomes = {1: True, 2: True, 4: True, 8: True, 16: False, 12: True, 14: False, 13: True}
     while not s.done:
         n = s.next()
-        s.record(_point(n, outcomes.get(n, n <= 3)))
-    # 13 passes, 14 and 16 fail: capacity 13; a later noisy pass above a failure is never taken.
-    assert s.capacity == 13
+        s.record(_point(n, outcomes[n]))
+    assert s.capacity == 13 and [p.robots for p in s.points] == [1, 2, 4, 8, 16, 12, 14, 13]
 
 
 def _run_screened(s: CapacitySearch, passes) -> list[tuple[int, int]]:
@@ -216,8 +261,19 @@ def test_screened_search_runs_every_epoch_only_on_the_candidate(threshold):
     s = CapacitySearch(0.98, 8, 64, screen_epochs=1, full_epochs=5)
     trace = _run_screened(s, lambda n, epochs: n <= threshold)
     assert s.capacity == threshold
-    assert [t for t in trace if t[1] == 5] == [(threshold, 5)]  # one full run, on the answer
-    assert all(e == 1 for _, e in trace[:-1])
+    # Full runs only at the bracket's ends: the answer, and the count above it (none above max_robots).
+    assert [t for t in trace if t[1] == 5] == [(threshold, 5)] + [(threshold + 1, 5)] * (threshold < 64)
+    assert all(e == 1 for _, e in trace[:-2])
+
+
+def test_screened_search_goes_on_above_a_screening_failure_that_passes_its_full_run():
+    # One short epoch at 11, 12 and 16 drew hard phases; with every epoch they pass, up to 40.
+    s = CapacitySearch(0.98, 8, 256, screen_epochs=1, full_epochs=5)
+    trace = _run_screened(s, lambda n, epochs: n <= 40 if epochs == 5 else n <= 10 or 17 <= n <= 40)
+    assert s.capacity == 40
+    full = [n for n, e in trace if e == 5]
+    assert full[:2] == [10, 11] and full[-2:] == [40, 41]
+    assert all(n <= 40 for n, e in trace if e == 5 and n != 41)
 
 
 def test_screened_search_goes_on_below_a_candidate_that_fails_its_full_run():
@@ -244,10 +300,10 @@ def test_screened_search_where_no_full_run_passes_ends_at_zero():
     assert s.capacity == 0 and s.done
 
 
-def test_screened_search_with_nothing_passing_runs_no_full_point():
+def test_screened_search_with_nothing_passing_confirms_the_failure_at_one_robot():
     s = CapacitySearch(0.98, 4, 64, screen_epochs=1, full_epochs=5)
     trace = _run_screened(s, lambda n, epochs: False)
-    assert s.capacity == 0 and all(e == 1 for _, e in trace)
+    assert s.capacity == 0 and trace == [(4, 1), (2, 1), (1, 1), (1, 5)]
 
 
 def test_screening_needs_fewer_epochs_than_a_full_point():
@@ -341,6 +397,56 @@ def test_cli_writes_capacity_json_and_plot(tmp_path):
         assert not png.exists()
     else:
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_sweep_runs_every_epoch_and_records_what_it_did(tmp_path):
+    out = tmp_path / "sweep.json"
+    cmd = [sys.executable, os.path.join(ROOT, "bench", "capacity.py"), "--models", "toy", "--engines", "monolithic",
+           "--size", "tiny", "--device", "cpu", "--hz", "10", "--epochs", "2", "--duration", "0.3", "--drain", "0.1",
+           "--sweep", "1", "--deadline", "toy=1", "--quiet", "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(out.read_text())
+    point = doc["curves"]["toy"]["monolithic"][0]
+    assert not point["passed"] and point["epochs"] == 2 and len(point["epoch_slo_attainment"]) == 2
+    assert doc["settings"]["early_stop"] is False and doc["settings"]["screen_epochs"] is None
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--hz", "0"], "--hz: expected a positive rate"),
+    (["--hz", "-2"], "--hz: expected a positive rate"),
+    (["--hz", "2", "--duration", "0.3"], "--duration: expected at least one period"),
+    (["--epochs", "0"], "--epochs: expected at least 1"),
+    (["--drain", "-1"], "--drain: expected a non-negative"),
+    (["--sweep", "0,1"], "--sweep: expected robot counts of at least 1"),
+    (["--start", "9", "--max-robots", "4"], "expected 1 <= start <= max-robots"),
+    (["--target", "1.5"], "--target: expected a share"),
+])
+def test_cli_refuses_bad_measurement_arguments_before_building_models(args, message, capsys):
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+
+    with pytest.raises(SystemExit) as exc:
+        bench_capacity.main(["--models", "toy", "--size", "tiny", "--device", "cpu", *args])
+    assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_merged_results_drop_ratios_of_a_rerun_without_its_baseline(tmp_path):
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+    from services.executor.simulation import CapacityResult
+
+    def result(engine: str, capacity: int) -> CapacityResult:
+        return CapacityResult("toy", engine, 0.98, "search", capacity, [], [])
+
+    path = tmp_path / "cap.json"
+    first = bench_capacity.Report(path, {"target": 0.98}, {}, merge=False)
+    first.model_done("toy", {"monolithic": result("monolithic", 4), "rr": result("rr", 4)}, "monolithic")
+    assert json.loads(path.read_text())["ratios"] == {"toy": {"rr/monolithic": 1.0}}
+    again = bench_capacity.Report(path, {"target": 0.98}, {}, merge=True)
+    again.model_done("toy", {"rr": result("rr", 0)}, None)
+    doc = json.loads(path.read_text())
+    assert doc["capacity"] == {"toy": {"rr": 0}} and doc["ratios"] == {}
 
 
 def test_cli_meta_names_the_shipped_commit_and_replot_needs_a_png(tmp_path, monkeypatch):

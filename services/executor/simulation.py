@@ -65,6 +65,11 @@ class RobotGroup:
     robots: int
     hz: float = 2.0
 
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.hz) and self.hz > 0) or self.robots < 0:
+            raise ValueError(f"RobotGroup {self.model}: hz > 0 and robots >= 0 are needed, got {self.hz} and "
+                             f"{self.robots}")
+
 
 @dataclass
 class SimConfig:
@@ -280,12 +285,16 @@ class _Collector:
             self.all_answered.set()
 
     def __call__(self, results: list[Result]) -> None:
+        # The reply time is when the sink has the result, as a client would, not the engine's own stamp: an
+        # engine that hands results over later than it stamps them (a lockstep delivers after launching the
+        # next one) must not gain the difference.
+        now = time.monotonic()
         with self._lock:
             for r in results:
                 o = self._outcomes.get(r.request.id)
                 if o is None or o.done is not None:
                     continue  # not this epoch's, or answered twice: the first answer counts
-                o.done = r.done
+                o.done = max(now, r.done)
                 o.error = r.error[0].value if r.error is not None else None
                 self._answered += 1
             if self._answered >= self._expected:
@@ -468,7 +477,9 @@ def _run_epoch(host: EngineHost, workload: Sequence[RobotGroup], cfg: SimConfig,
         driver = threading.Thread(target=drive, args=(engine, t0), name="robot-driver", daemon=True)
         driver.start()
         driver.join()
-        end = t0 + cfg.duration_s + cfg.drain_s
+        # Never before the last send's deadline: a shorter drain would stop the engine on requests that could
+        # still be answered in time, and count them as misses.
+        end = t0 + cfg.duration_s + max(cfg.drain_s, max((mi.slo_s for mi in inputs.values()), default=0.0))
         collector.all_answered.wait(max(0.0, end - time.monotonic()))
         telemetry = _telemetry(engine, "end")
     # Stopping the engine answers what was still queued (with an error): those are misses too.
@@ -556,16 +567,21 @@ class CapacitySearch:
     """Exponential growth from ``start`` until a count fails (or ``max_robots``), then bisection.
 
     Step-wise (``next`` / ``record``) so a caller can interleave several engines' searches
-    point by point. Bisection assumes attainment falls with load; when noise breaks that
-    (a count fails below one that passed) the failure wins, so the capacity found is a
-    count that passed with no failed count below it.
+    point by point. Bisection assumes attainment falls with load and only measures between
+    the largest pass and the smallest failure, so the capacity found is a count that passed
+    with the next count failing.
 
-    With ``screen_epochs`` the bracket is found with short points (that many epochs each)
-    and only the candidate is then measured with every epoch (``epochs_next`` says which).
-    Short points can be optimistic (one epoch sees one draw of the robots' phases), so
-    once a candidate fails its full run every later point runs all epochs: galloping down
-    (1, 2, 4, ... robots below the latest failure, at least one robot) to a full pass, then
-    bisecting.
+    With ``screen_epochs`` the bracket is found with short points (that many epochs each),
+    and its two ends are then measured with every epoch (``epochs_next`` says which): the
+    candidate, then the count above it. One short epoch sees one draw of the robots' phases
+    and can err either way:
+    - a candidate that fails its full run ends screening: every later point runs all epochs,
+      galloping down (1, 2, 4, ... robots below the latest failure, at least one robot) to a
+      full pass, then bisecting;
+    - a count above the candidate that passes its full run overrules the screening failures
+      at or below it, and the search goes on above it.
+    So the reported capacity passed all of its epochs and the count above it failed with all
+    of its epochs (or is beyond ``max_robots``).
     """
 
     def __init__(self, target: float = 0.98, start: int = 1, max_robots: int = 256, growth: float = 2.0,
@@ -613,6 +629,10 @@ class CapacitySearch:
         n = point.robots
         if point.passed:
             self.lo = max(self.lo, n)
+            if full and self.hi is not None and self.hi <= n:
+                # A run of every epoch outweighs a screening failure at or below it: the nearest screening
+                # failure above it, if any, bounds the search now.
+                self.hi = min((p.robots for p in self.points if not p.passed and p.robots > n), default=None)
         else:
             self.hi = n if self.hi is None else min(self.hi, n)
         if full and not point.passed and self.screen_epochs is not None:
@@ -621,22 +641,22 @@ class CapacitySearch:
         if self._full_mode:
             self._record_full()
             return
-        if self.hi is None and n < self.max_robots:  # still growing
-            self._next = min(self.max_robots, max(n + 1, int(n * self.growth)))
+        if self.hi is None and self.lo < self.max_robots:  # still growing
+            self._next = min(self.max_robots, max(self.lo + 1, int(self.lo * self.growth)))
             return
-        if self.hi is not None and self.hi <= self.lo:
-            # Non-monotone noise: a count failed below one that passed. Trust the failure
-            # (capacity must hold at every count below it) and search below it.
-            self.lo = max((p.robots for p in self.points if p.passed and p.robots < self.hi), default=0)
         if self.hi is not None and self.hi - self.lo > 1:
             self._next = (self.lo + self.hi) // 2
             if not any(p.robots == self._next for p in self.points):
                 return
-        # Bracket closed (or the midpoint was already measured): confirm the candidate with every epoch.
-        if self.screen_epochs is not None and self.lo > 0 and not any(
-                p.robots == self.lo and p.passed for p in self.full_points):
-            self._next, self._confirming = self.lo, True
-            return
+        # Bracket closed (or the midpoint was already measured): confirm both ends with every epoch, the
+        # candidate first. A count that only failed one short epoch does not bound the capacity.
+        if self.screen_epochs is not None:
+            if self.lo > 0 and not any(p.robots == self.lo and p.passed for p in self.full_points):
+                self._next, self._confirming = self.lo, True
+                return
+            if self.hi is not None and not any(p.robots == self.hi for p in self.full_points):
+                self._next, self._confirming = self.hi, True
+                return
         self._next = None
 
     def _record_full(self) -> None:
