@@ -24,7 +24,7 @@ import zmq
 
 from shared.protocol import (MAX_HEADER_BYTES, MAX_ID_CHARS, ErrorCode, ErrorReply, Hello, InferReply, InferRequest,
                              Metadata, ModelInfo, Ping, Pong, ProtocolError, RequestId, Timings, decode, encode,
-                             header_id, message_bytes, unpack_header, valid_id)
+                             header_id, message_bytes, unpack_answer_header, valid_id)
 
 log = logging.getLogger("robion.client")
 
@@ -101,26 +101,30 @@ class RobotClient:
     def __init__(self, address: str, robot_id: str | None = None, timeout_s: float = 10.0,
                  context: zmq.Context | None = None):
         self.robot_id = robot_id or f"robot-{uuid.uuid4().hex[:8]}"
+        # The router tells requests apart by (identity, id) and gives a reconnecting identity's replies to the new
+        # connection, and its request_timeout_s outlasts ours: a client replacing another under the same robot_id
+        # (a restarted robot, a new client after a timeout) must not reuse its ids, or it is refused "already in
+        # flight" or handed the actions of the old client's request. Hence a per-client session in every id.
+        self._session = uuid.uuid4().hex[:8]
+        # The socket identity is the session's too: two clients of one robot (a thread each) under one identity
+        # would share one connection at the router, which hands every reply to the newer (ROUTER_HANDOVER), and
+        # the older would time out on all of its requests. The router routes a robot by the request's `robot`.
+        identity = f"{self.robot_id}-{self._session}".encode()
         # Checked before the socket exists: a refused identity used to raise from setsockopt and leave an
         # open socket behind, which makes the context's term() wait forever.
-        if len(self.robot_id) > MAX_ROBOT_ID_CHARS or len(self.robot_id.encode()) > MAX_IDENTITY_BYTES:
-            raise ValueError(f"robot_id: at most {MAX_ROBOT_ID_CHARS} characters and {MAX_IDENTITY_BYTES} bytes "
+        if len(self.robot_id) > MAX_ROBOT_ID_CHARS or len(identity) > MAX_IDENTITY_BYTES:
+            raise ValueError(f"robot_id: at most {MAX_ROBOT_ID_CHARS} characters and {MAX_IDENTITY_BYTES - 9} bytes "
                              f"in UTF-8, got {len(self.robot_id)} characters")
         self.timeout_s = timeout_s
         self._ctx = context or zmq.Context.instance()
         self.socket = self._ctx.socket(zmq.DEALER)
         try:
             self.socket.setsockopt(zmq.LINGER, 0)
-            self.socket.setsockopt(zmq.IDENTITY, self.robot_id.encode())
+            self.socket.setsockopt(zmq.IDENTITY, identity)
             self.socket.connect(address)
         except zmq.ZMQError:
             self.socket.close(linger=0)
             raise
-        # The router tells requests apart by (identity, id) and gives a reconnecting identity's replies to the new
-        # connection, and its request_timeout_s outlasts ours: a client replacing another under the same robot_id
-        # (a restarted robot, a new client after a timeout) must not reuse its ids, or it is refused "already in
-        # flight" or handed the actions of the old client's request. Hence a per-client session in every id.
-        self._session = uuid.uuid4().hex[:8]
         self._ids = itertools.count()
         # id -> (model, sent_at, bytes, the answer's type). In send order, hence in sent_at order (a request
         # is added once, when it goes out): the oldest, the next to expire, is always the first.
@@ -135,15 +139,26 @@ class RobotClient:
 
     def submit(self, model: str, images: Mapping[str, np.ndarray] | Sequence[np.ndarray], state: np.ndarray,
                instruction: str = "", request_id: RequestId | None = None) -> RequestId:
-        """Send a request and return its id at once (``request_id``, or one the client makes); collect the
-        outcome with ``poll``."""
+        """Send a request and return its id (``request_id``, or one the client makes); collect the outcome with
+        ``poll``. The arrays are copied as the request goes out, so they may be reused at once.
+
+        Images given as a list are matched to the model's camera names, which the first such call fetches with
+        ``metadata()`` (one round trip, at most ``timeout_s``); a mapping by camera name never waits.
+        """
+        return self._submit(model, images, state, instruction, request_id, self.timeout_s)
+
+    def _submit(self, model: str, images: Mapping[str, np.ndarray] | Sequence[np.ndarray], state: np.ndarray,
+                instruction: str, request_id: RequestId | None, timeout_s: float) -> RequestId:
         if not isinstance(images, Mapping):
-            cams = self._camera_names(model, len(images))
+            cams = self._camera_names(model, len(images), timeout_s)
             images = dict(zip(cams, images))
         # `is None`, not `or`: 0 (and "", refused below) are the caller's ids, not a request for a generated one.
         rid = request_id if request_id is not None else f"{self.robot_id}-{self._session}-{next(self._ids)}"
-        frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
-                                     state=np.asarray(state, dtype=np.float32), instruction=instruction))
+        try:
+            frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
+                                         state=np.asarray(state, dtype=np.float32), instruction=instruction))
+        except (TypeError, ValueError) as exc:  # a dtype that cannot travel, text that is no UTF-8 (lone surrogates)
+            raise RobionError(ErrorCode.BAD_REQUEST, str(exc), str(rid)) from None
         self._send(rid, model, frames, InferReply)
         return rid
 
@@ -189,17 +204,20 @@ class RobotClient:
 
     def infer(self, model: str, images: Mapping[str, np.ndarray] | Sequence[np.ndarray], state: np.ndarray,
               instruction: str = "", timeout_s: float | None = None) -> Completion:
-        """Send one request and wait for its action chunk; raises RobionError / RequestTimeout."""
-        rid = self.submit(model, images, state, instruction)
-        done = self._wait_for(rid, timeout_s)
+        """Send one request and wait for its action chunk; raises RobionError / RequestTimeout. ``timeout_s``
+        (default: the client's) bounds the whole call, a first fetch of the camera names included."""
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
+        rid = self._submit(model, images, state, instruction, None, timeout_s)
+        done = self._wait_for(rid, deadline - time.monotonic(), reported_s=timeout_s)
         if done.error is not None:
             raise done.error
         return done
 
-    def metadata(self, refresh: bool = False) -> dict[str, ModelInfo]:
+    def metadata(self, refresh: bool = False, timeout_s: float | None = None) -> dict[str, ModelInfo]:
         """The served models: their camera names, image shape, state size, output shape and deadline."""
         if self._metadata is None or refresh:
-            self._round_trip(Hello, Metadata, "hello", None)
+            self._round_trip(Hello, Metadata, "hello", timeout_s)
         assert self._metadata is not None
         return self._metadata
 
@@ -242,8 +260,11 @@ class RobotClient:
         sent_at = time.monotonic()
         try:
             # NOBLOCK: while the router is unreachable the socket queues up to its high-water mark; a blocking
-            # send would then wait until the router is back, past any timeout the caller gave.
-            self.socket.send_multipart(frames, flags=zmq.NOBLOCK, copy=False)
+            # send would then wait until the router is back, past any timeout the caller gave. copy=True: the
+            # frames are views of the caller's arrays, and a zero-copy send reads them only when the message
+            # leaves, maybe after a camera loop has written its next image into the same buffer. A copy of a
+            # few camera images costs tens of microseconds.
+            self.socket.send_multipart(frames, flags=zmq.NOBLOCK, copy=True)
         except zmq.Again:
             raise RobionError(ErrorCode.UNAVAILABLE, "the router is not taking requests (send queue full: "
                                                      "unreachable or not reading)", str(rid)) from None
@@ -263,28 +284,32 @@ class RobotClient:
             stale.append(rid)
         return [self._complete(rid, now, 0, error=RequestTimeout(rid, self.timeout_s)) for rid in stale]
 
-    def _camera_names(self, model: str, n: int) -> list[str]:
-        info = self.metadata().get(model)
+    def _camera_names(self, model: str, n: int, timeout_s: float) -> list[str]:
+        info = self.metadata(timeout_s=timeout_s).get(model)
         if info is None:
             raise RobionError(ErrorCode.UNKNOWN_MODEL, f"model {model!r} is not served")
         if len(info.cameras) != n:
             raise RobionError(ErrorCode.SHAPE_MISMATCH, f"{model} takes {len(info.cameras)} cameras, got {n}")
         return info.cameras
 
-    def _wait_for(self, rid: str, timeout_s: float | None) -> Completion:
+    def _wait_for(self, rid: str, timeout_s: float | None, reported_s: float | None = None) -> Completion:
+        """Wait for request ``rid``'s outcome. Whatever ends the wait without one (its timeout, an interrupt)
+        ends the request too: a late answer is dropped, never reported by ``poll`` as a completion."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0 or not self.socket.poll(int(left * 1000) + 1):
-                self._pending.pop(rid, None)
-                raise RequestTimeout(rid, timeout_s)
-            done = self._receive_one()
-            if done is None:
-                continue
-            if done.request_id == rid:
-                return done
-            self._done.append(done)  # another request's outcome: poll returns it
+        try:
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self.socket.poll(None if math.isinf(left) else int(left * 1000) + 1):
+                    raise RequestTimeout(rid, timeout_s if reported_s is None else reported_s)
+                done = self._receive_one()
+                if done is None:
+                    continue
+                if done.request_id == rid:
+                    return done
+                self._done.append(done)  # another request's outcome: poll returns it
+        finally:
+            self._pending.pop(rid, None)
 
     def _receive_one(self) -> Completion | None:
         """Read one message; the outcome of the request in flight it answers, or None if it answers none."""
@@ -294,7 +319,7 @@ class RobotClient:
         # The header first: its id says which request a reply is for even when the rest is broken, so that
         # request can fail now instead of waiting out its timeout for an answer that has already come.
         try:
-            header = unpack_header(frames[0])
+            header = unpack_answer_header(frames[0])
         except ProtocolError as exc:
             # No id to read, so no request to fail: the one it answered (if any) runs to its timeout.
             log.debug("dropped a reply whose header cannot be decoded: %s", exc.message)
@@ -360,10 +385,11 @@ def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[Rob
     # for a client with a request past its timeout: that request's outcome is ready too.
     now = time.monotonic()
     ready = [c for c in clients if c._done or expired(c, now)]
-    wait_ms = max(0, int(timeout_s * 1000))
+    wait_ms: int | None = None if math.isinf(timeout_s) else max(0, int(timeout_s * 1000))  # None: no limit
     soonest = min((e for e in expiry.values() if e is not None and not math.isinf(e)), default=None)
     if soonest is not None:
-        wait_ms = min(wait_ms, max(0, math.ceil((soonest - now) * 1000)))
+        until = max(0, math.ceil((soonest - now) * 1000))
+        wait_ms = until if wait_ms is None else min(wait_ms, until)
     events = poller.poll(0 if ready else wait_ms)
     readable = {by_socket[sock] for sock, _ in events}
     now = time.monotonic()

@@ -213,6 +213,18 @@ def unpack_header(frame: Frame) -> dict[str, Any]:
     return unpack_map(frame, max_bytes=MAX_HEADER_BYTES, max_map_len=MAX_MAP_LEN, max_array_len=4096, what="header")
 
 
+# An answer's header may be larger than a request's: a `metadata` answer describes every served model (about
+# 140 bytes each, past 64 KiB at some 450 models). A client still bounds what the router can make it allocate.
+MAX_ANSWER_HEADER_BYTES = 16 * 1024 * 1024
+MAX_ANSWER_LEN = 1 << 20  # entries in any one map or array of an answer's header
+
+
+def unpack_answer_header(frame: Frame) -> dict[str, Any]:
+    """Decode frame 0 of an answer from the router (a client's side), with the answer limits above."""
+    return unpack_map(frame, max_bytes=MAX_ANSWER_HEADER_BYTES, max_map_len=MAX_ANSWER_LEN,
+                      max_array_len=MAX_ANSWER_LEN, what="header")
+
+
 def unpack_map(frame: Frame, max_bytes: int, max_map_len: int, max_array_len: int, what: str) -> dict[str, Any]:
     """Decode one msgpack map of at most ``max_bytes`` bytes and ``max_*_len`` entries per map / array.
 

@@ -19,8 +19,8 @@ from shared import control
 from shared.config import ClusterConfig, dial_address
 from shared.control import RoutingTable, TableError
 from shared.metrics import RouterMetrics, serve
-from shared.protocol import (ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode, error_frames,
-                             header_id, max_frames, message_bytes, unpack_header)
+from shared.protocol import (MAX_ID_CHARS, ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode,
+                             error_frames, header_id, max_frames, message_bytes, unpack_header)
 from shared.service import bind, connected_again
 
 log = logging.getLogger("robion.router")
@@ -244,7 +244,13 @@ class Router:
             return self._reply_error(robot, rid, ErrorCode.OVERLOADED, "too many requests in flight")
         self.stats["requests"] += 1
         full: list[str] = []
-        for executor in self.routing.candidates(model, robot):
+        # A robot is pinned by its name, not its connection: two clients of one robot (and one restarted with a
+        # new socket identity) keep their executor and count once against its quota. A name that is no short
+        # string (the executor refuses one that is no string at all) leaves the connection to stand in for it, so
+        # the pin table's keys stay as small as identities.
+        name = header.get("robot")
+        pin = name.encode() if isinstance(name, str) and 0 < len(name) <= MAX_ID_CHARS else robot
+        for executor in self.routing.candidates(model, pin):
             try:
                 # NOBLOCK: an executor that stops reading (stalled, stopped, swamped) fills its pipe,
                 # and a blocking send would freeze this one loop for every robot and table update.
