@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(ROOT / "bench/results/solver_speed.json"))
     ap.add_argument("--instances", type=int, default=5, help="random instances per size and placement")
     ap.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT_S, help="CP-SAT time limit per solve, seconds")
-    ap.add_argument("--workers", type=int, default=None, help="CP-SAT workers (default: min(8, cores))")
+    ap.add_argument("--workers", type=int, default=None, help="CP-SAT workers (default: 1, repeatable plans; more race in parallel and are not deterministic)")
     args = ap.parse_args(argv)
 
     # Warm-up: the first solve pays for loading OR-Tools' native library.

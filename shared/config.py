@@ -26,6 +26,48 @@ class ConfigError(ValueError):
     """A configuration mistake; ``str(err)`` is the message to show the operator."""
 
 
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping that gives one key twice. PyYAML keeps the last value without a word, so a
+    repeated `robots:` or model name would silently replace the first; every file is refused instead."""
+
+    def __init__(self, key: Any, mark: yaml.Mark, first: yaml.Mark) -> None:
+        super().__init__(None, None, f"duplicate key {key!r}", mark)
+        self.key = key
+        self.line, self.column = mark.line + 1, mark.column + 1
+        self.first_line, self.first_column = first.line + 1, first.column + 1
+
+    def __str__(self) -> str:
+        return (f"duplicate key {self.key!r} at line {self.line}, column {self.column} "
+                f"(first given at line {self.first_line}, column {self.first_column})")
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that raises DuplicateKeyError on a key given twice in one mapping.
+
+    Keys a merge (``<<: *base``) brings in may still be overridden: that is what merges are for."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, yaml.Mark] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark)
+                except TypeError:  # an unhashable key: SafeLoader reports it itself
+                    continue
+                if first is not key_node.start_mark:
+                    raise DuplicateKeyError(key, key_node.start_mark, first)
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml(text: str) -> Any:
+    """Parse YAML text like yaml.safe_load, but refuse a mapping key given twice (DuplicateKeyError,
+    a yaml.YAMLError). Every file the operator writes is read through this."""
+    return yaml.load(text, Loader=UniqueKeyLoader)
+
+
 def positive_number(v: Any) -> bool:
     """A finite number above zero: the check of every rate, size, count and timeout setting
     (``.inf`` / ``.nan`` parse as floats from YAML, and no rate or size is infinite). An int is
@@ -546,7 +588,9 @@ def load_config(path: str | Path) -> ClusterConfig:
 def config_from_text(text: str, source: str = "config", folder: Path | None = None) -> ClusterConfig:
     """A checked config from YAML text (a file's, or one sent with `robion ctl apply`); ``source`` names it."""
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
+    except DuplicateKeyError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

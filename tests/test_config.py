@@ -193,3 +193,30 @@ def test_cli_reports_a_nameless_grouped_model_without_traceback(tmp_path):
                          cwd=ROOT, timeout=60)
     assert out.returncode == 2, out.stderr
     assert "models[0].name: missing" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("text, message", [
+    # yaml.safe_load kept the last value of a repeated key: robots 9 was planned where 2 was written first
+    ("models:\n  - {name: a, arch: toy, robots: 2, limit: 4, robots: 9}\nexecutors:\n  - {name: e0, models: [a]}\n",
+     "duplicate key 'robots' at line 2, column 47 (first given at line 2, column 26)"),
+    ("models:\n  - {name: a, arch: toy}\nexecutors:\n  - {name: e0, models: [a]}\n"
+     "control: {headroom: 0.5}\ncontrol: {strategy: smg}\n",
+     "duplicate key 'control' at line 6, column 1 (first given at line 5, column 1)"),
+    ("models:\n  - name: a\n    arch: toy\n    name: b\nexecutors:\n  - {name: e0, models: [a]}\n",
+     "duplicate key 'name' at line 4"),
+])
+def test_duplicate_keys_are_refused(tmp_path, text, message):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        load_config(path)
+    assert str(e.value).startswith(f"{path}: {message}"), str(e.value)
+
+
+def test_merge_keys_may_still_override():
+    """A key a merge (`<<: *base`) brings in is not a duplicate: overriding it is what merges are for."""
+    from shared.config import config_from_text
+
+    cfg = config_from_text("models:\n  - &a {name: a, arch: toy, slo_ms: 100}\n  - {<<: *a, name: b, slo_ms: 50}\n"
+                           "executors:\n  - {name: e0, models: [a, b]}\n")
+    assert [(m.name, m.slo_ms) for m in cfg.models] == [("a", 100.0), ("b", 50.0)]

@@ -201,3 +201,42 @@ def test_an_apply_drops_measured_limits_of_models_whose_rate_or_deadline_changed
     assert st.table.limits == {"B": 30}, st.table.limits  # A at 10 Hz: unmeasured until its executor says
     st.register("ex0", "cpu", {"A": info, "B": info}, limits={"A": 8, "B": 30}, instance="a")
     assert st.table.limits == {"A": 8, "B": 30}
+
+
+def _full_placement_config(limits: list[int], robots: list[int], executors: int, **control):
+    from shared.config import config_from_dict
+
+    names = [f"m{i}" for i in range(len(limits))]
+    cfg = config_from_dict({"models": [{"name": n, "arch": "toy", "robots": r, "limit": c}
+                                       for n, c, r in zip(names, limits, robots)],
+                            "executors": [{"name": f"ex{j}", "models": names} for j in range(executors)],
+                            **({"control": control} if control else {})})
+    return cfg, {f"ex{j}": list(names) for j in range(executors)}
+
+
+def test_a_solver_time_out_keeps_a_plan_within_the_gpu_limits():
+    """48 executors x 32 models: the integer program timed out without a CP-SAT solution, the plane fell back
+    to the even split and pushed a GPU to 105% of its limit, although the greedy plan fitted."""
+    from services.controlplane.traffic import assign
+
+    limits = [2 + i % 11 for i in range(32)]
+    cfg, placement = _full_placement_config(limits, [int(c * 48 * 0.8 / 32) for c in limits], 48,
+                                            solve_time_limit_s=2)
+    q = assign(cfg, placement)
+    assert q.result.strategy == "ip" and q.result.feasible, (q.result.strategy, q.result.diagnosis)
+    assert max(q.result.gpu_load) <= 1
+    assert {m: sum(per.values()) for m, per in q.robots.items()} == {m.name: m.robots for m in cfg.models}
+
+
+def test_re_solving_an_unchanged_cluster_moves_no_robot(monkeypatch):
+    """CP-SAT's parallel workers returned a different optimal plan on each solve: every re-plan of an
+    unchanged cluster re-pinned about half the robots. Simulates an 8-core control-plane host."""
+    import json
+    import os
+
+    from services.controlplane.traffic import assign
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    cfg, placement = _full_placement_config([27, 16, 16, 9, 32, 22, 22, 12], [20, 10, 9, 5, 15, 8, 7, 3], 4)
+    tables = {json.dumps(assign(cfg, placement).robots, sort_keys=True) for _ in range(4)}
+    assert len(tables) == 1, tables

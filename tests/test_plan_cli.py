@@ -173,3 +173,96 @@ def test_time_limit_that_is_not_positive_exit_2(tmp_path: Path, value: str) -> N
     assert out.returncode == 2, (out.returncode, out.stdout, out.stderr)
     assert "--time-limit" in out.stderr and "positive" in out.stderr, out.stderr
     assert "Traceback" not in out.stderr
+
+
+# --------------------------------------------------------------------------- the control section, repeated keys, the GPU cap
+
+CLUSTER_SMG = """\
+models:
+  - {name: A, arch: toy, robots: 6, limit: 4}
+  - {name: B, arch: toy, robots: 2, limit: 4}
+executors:
+  - {name: ex0, models: [A, B]}
+  - {name: ex1, models: [A, B]}
+control: {strategy: smg, solve_time_limit_s: 0.5}
+"""
+
+
+def test_cluster_config_plans_with_its_control_strategy(tmp_path: Path) -> None:
+    """docs/planning.md: `robion plan` runs the control plane's traffic controller; on a cluster config it
+    ignored control.strategy and solved the integer program."""
+    out = run_plan(tmp_path, CLUSTER_SMG)
+    assert "strategy: smg" in out.stdout, out.stdout
+    assert out.returncode == 1 and "smg assignment exceeds GPU limits" in out.stderr  # what the plane would do
+
+
+def test_cluster_config_defaults_and_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """control.solve_time_limit_s was ignored too (the CLI's 8 s default was used). Flags still win, and a
+    planning file keeps the CLI defaults."""
+    import services.controlplane.planning as planning
+
+    calls: list[tuple[str, float]] = []
+    real_solve = planning.solve
+
+    def spy(problem, strategy="ip", time_limit_s=8.0, **kwargs):
+        calls.append((strategy, time_limit_s))
+        return real_solve(problem, strategy, time_limit_s=time_limit_s, **kwargs)
+
+    monkeypatch.setattr(planning, "solve", spy)
+    f = tmp_path / "cluster.yaml"
+    f.write_text(CLUSTER_SMG)
+    assert planning.main([str(f), "--json"]) == 1  # smg overloads GPU 0
+    assert planning.main([str(f), "--json", "--strategy", "ip", "--time-limit", "3"]) == 0
+    f.write_text(CLUSTER_SMG.replace("strategy: smg", "strategy: none"))
+    capsys.readouterr()
+    assert planning.main([str(f), "--json"]) == 0
+    assert "control.strategy is 'none'" in capsys.readouterr().err
+    p = tmp_path / "plan.yaml"
+    p.write_text(PAPER)
+    assert planning.main([str(p), "--json"]) == 0
+    assert calls == [("smg", 0.5), ("ip", 3.0), ("ip", 0.5), ("ip", 8.0)]
+
+
+@pytest.mark.parametrize("text, message", [
+    ("gpus: 2\nmodels:\n  A: {limit: 4, robots: 6, gpus: [0, 1]}\n  B: {limit: 4, robots: 2, gpus: [0, 1]}\n"
+     "  A: {limit: 4, robots: 1, gpus: [0]}\n", "duplicate key 'A' at line 5, column 3 (first given at line 3, column 3)"),
+    ("gpus: 2\ngpus: 1\nmodels:\n  A: {limit: 4, robots: 6}\n", "duplicate key 'gpus' at line 2"),
+    ("gpus: 2\nmodels:\n  A: {limit: 4, robots: 2, robots: 9}\n", "duplicate key 'robots' at line 3"),
+    ("models:\n  - {name: A, arch: toy, robots: 2, limit: 4}\nexecutors:\n  - {name: ex0, models: [A]}\n"
+     "control: {headroom: 0.5}\ncontrol: {strategy: smg}\n", "duplicate key 'control' at line 6"),
+])
+def test_duplicate_keys_are_refused(tmp_path: Path, text: str, message: str) -> None:
+    """yaml.safe_load keeps the last of two equal keys: a model named twice was planned once, with the
+    second entry's numbers, and nothing was said."""
+    out = run_plan(tmp_path, text)
+    assert out.returncode == 2, (out.stdout, out.stderr)
+    assert message in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_too_many_gpus_exit_2(tmp_path: Path) -> None:
+    """`gpus: 100000000` ended in a MemoryError traceback (a host list per model); 4096 is the documented cap."""
+    out = run_plan(tmp_path, "gpus: 1000000000000\nmodels:\n  A: {limit: 4, robots: 6}\n")
+    assert out.returncode == 2, out.stderr[-500:]
+    assert "gpus: at most 4096 GPUs can be planned, got 1000000000000" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_summary_lower_bound_is_never_negative(tmp_path: Path) -> None:
+    """Cut off early the summary printed CP-SAT's bound on twice the objective, halved: 'lower bound -2878.5'."""
+    import re
+
+    import yaml
+    from tests.test_solver import bench_instance
+
+    p = bench_instance(32, 16, "full", 32163)
+    text = yaml.safe_dump({"gpus": p.num_gpus, "models": {m.name: {"limit": m.limit, "robots": m.robots,
+                                                                    "gpus": list(m.gpus)} for m in p.models}})
+    out = run_plan(tmp_path, text, "--time-limit", "0.5")
+    assert out.returncode == 0, out.stderr
+    summary = out.stdout.strip().splitlines()[-1]
+    objective = int(re.search(r"objective: (\d+)", summary).group(1))
+    bound = re.search(r"lower bound (\S+)\)", summary)
+    assert bound or "proven optimal" in summary, summary
+    if bound:
+        assert bound.group(1).isdigit() and int(bound.group(1)) <= objective, summary

@@ -5,6 +5,9 @@ controller and prints the assignment without starting anything:
 
     python -m services.controlplane.planning FILE.yaml [--strategy ip|smg|eps] [--headroom H] [--json]
 
+For a cluster config the strategy, time limit and headroom default to its ``control``
+section, so the plan is the one the control plane would make; explicit flags win.
+
 Exit codes: 0 assignment within the GPU limits, 1 infeasible (or, for smg/eps, an
 assignment that overloads a GPU; for ip also a time-out without any assignment),
 2 unreadable or invalid input.
@@ -15,12 +18,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import yaml
 
-from shared.config import ClusterConfig, ConfigError, config_from_dict
+from shared.config import ClusterConfig, ConfigError, ControlConfig, DuplicateKeyError, config_from_dict, load_yaml
 
 from services.controlplane.solver import (
     DEFAULT_TIME_LIMIT_S,
@@ -29,6 +33,7 @@ from services.controlplane.solver import (
     PlanInputError,
     PlanProblem,
     PlanResult,
+    check_num_gpus,
     solve,
     with_headroom,
 )
@@ -56,7 +61,8 @@ def problem_from_mapping(data: Any) -> PlanProblem:
             raise PlanInputError(str(key), f"unknown key (expected {', '.join(_TOP_KEYS)})")
     if "gpus" not in data:
         raise PlanInputError("gpus", "missing (number of GPUs)")
-    num_gpus = _int(data["gpus"], "gpus", minimum=1, what="positive integer")
+    # Checked against MAX_GPUS before anything is sized by it (every model without `gpus` gets a list of them).
+    num_gpus = check_num_gpus(data["gpus"])
     models_raw = data.get("models")
     if models_raw is None:
         raise PlanInputError("models", "missing (mapping of model name to limit/robots/gpus)")
@@ -108,7 +114,15 @@ def problem_from_cluster(cfg: ClusterConfig, executors: Sequence[str] | None = N
     return PlanProblem(len(names), tuple(models))
 
 
-def load_planning_file(path: str | Path, headroom: float | None = None) -> PlanProblem:
+@dataclass(frozen=True)
+class PlanningInput:
+    """A parsed planning file: the problem, and the ``control`` section when it is a cluster config."""
+
+    problem: PlanProblem
+    control: ControlConfig | None = None
+
+
+def load_planning_input(path: str | Path, headroom: float | None = None) -> PlanningInput:
     """Parse a YAML planning file or a full cluster config; PlanInputError carries a readable reason.
 
     Limits are cut to ``headroom`` of C_i (``with_headroom``): the given share, else a cluster
@@ -120,18 +134,28 @@ def load_planning_file(path: str | Path, headroom: float | None = None) -> PlanP
     except UnicodeDecodeError as e:
         raise PlanInputError("", f"not a UTF-8 text file (byte {e.start})") from None
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
+    except DuplicateKeyError as e:  # safe_load kept the last value and planned something else than written
+        raise PlanInputError("", str(e)) from None
     except yaml.YAMLError as e:
         raise PlanInputError("", f"not valid YAML: {e}") from None
+    except RecursionError:  # PyYAML composes nested collections recursively
+        raise PlanInputError("", "not valid YAML (nested too deeply)") from None
     # A cluster config written with the placement shorthand (`gpus: N` + `placement:`) has no
     # `executors` key until it is expanded; a planning file never has `placement`.
     if isinstance(data, dict) and ("executors" in data or "placement" in data):
         try:
             cfg = config_from_dict(data)
-            return with_headroom(problem_from_cluster(cfg), cfg.control.headroom if headroom is None else headroom)
+            problem = with_headroom(problem_from_cluster(cfg), cfg.control.headroom if headroom is None else headroom)
         except ConfigError as e:
             raise PlanInputError("", str(e)) from None
-    return with_headroom(problem_from_mapping(data), 1.0 if headroom is None else headroom)
+        return PlanningInput(problem, cfg.control)
+    return PlanningInput(with_headroom(problem_from_mapping(data), 1.0 if headroom is None else headroom))
+
+
+def load_planning_file(path: str | Path, headroom: float | None = None) -> PlanProblem:
+    """The problem of a planning file or cluster config (``load_planning_input`` without the control section)."""
+    return load_planning_input(path, headroom).problem
 
 
 def format_table(problem: PlanProblem, result: PlanResult) -> str:
@@ -156,8 +180,15 @@ def format_table(problem: PlanProblem, result: PlanResult) -> str:
 def _summary(result: PlanResult) -> str:
     parts = [f"strategy: {result.strategy}", f"objective: {result.objective}"]
     if result.strategy == "ip":
-        proof = "proven optimal" if result.optimal else f"not proven optimal (lower bound {result.best_bound:g})"
-        parts.append(proof)
+        if result.source == "greedy":
+            # Returned because CP-SAT had nothing at least as good within the time limit (or, when proven
+            # optimal, because nothing can beat it); worth saying either way.
+            parts.append("greedy plan" if result.optimal else "greedy plan (CP-SAT found none better in time)")
+        if result.optimal:
+            parts.append("proven optimal")
+        else:
+            # best_bound is max(0, ceil(CP-SAT's bound)) on the objective itself: never negative.
+            parts.append(f"not proven optimal (lower bound {result.best_bound})")
     parts.append("within GPU limits" if result.feasible else "EXCEEDS GPU limits")
     parts.append(f"solved in {result.solve_time_s:.3f}s")
     return ", ".join(parts)
@@ -174,6 +205,22 @@ def _time_limit(text: str) -> float:
     return value
 
 
+def _defaults(args: argparse.Namespace, control: ControlConfig | None) -> tuple[str, float]:
+    """Strategy and time limit: the flags, else a cluster config's control section (what the control
+    plane solves with), else ip and DEFAULT_TIME_LIMIT_S."""
+    strategy, time_limit = args.strategy, args.time_limit
+    if control is not None:
+        if strategy is None:
+            if control.strategy in STRATEGIES:
+                strategy = control.strategy
+            else:  # "none": the control plane pins no robots; there is nothing of its own to show
+                print(f"robion plan: {args.file}: control.strategy is {control.strategy!r} (the control plane assigns "
+                      "no robots to GPUs; requests go round-robin); showing the ip plan", file=sys.stderr)
+        if time_limit is None:
+            time_limit = control.solve_time_limit_s
+    return strategy or "ip", DEFAULT_TIME_LIMIT_S if time_limit is None else time_limit
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="robion plan",
@@ -181,16 +228,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("file", help="planning file (YAML: gpus, models: {name: {limit, robots, gpus}}) or a cluster config "
                                  "(executors are the GPUs; models need robots and limit)")
-    ap.add_argument("--strategy", choices=STRATEGIES, default="ip", help="ip (integer program, default), smg, eps")
+    ap.add_argument("--strategy", choices=STRATEGIES, help="ip (integer program), smg, eps "
+                                                           "(default: a cluster config's control.strategy, else ip)")
     ap.add_argument("--json", action="store_true", help='print {"assignment", "objective", "feasible"} as JSON')
-    ap.add_argument("--time-limit", type=_time_limit, default=DEFAULT_TIME_LIMIT_S, help="solver time limit in seconds (ip)")
+    ap.add_argument("--time-limit", type=_time_limit, help="time limit in seconds for ip (default: a cluster config's "
+                                                           f"control.solve_time_limit_s, else {DEFAULT_TIME_LIMIT_S:g})")
     ap.add_argument("--headroom", type=float, help="plan with floor(limit x H) robots per GPU, 0 < H <= 1 "
                                                    "(default: a cluster config's control.headroom, else 1)")
     args = ap.parse_args(argv)
 
     try:
-        problem = load_planning_file(args.file, args.headroom)
-        result = solve(problem, args.strategy, time_limit_s=args.time_limit)
+        planning = load_planning_input(args.file, args.headroom)
+        problem = planning.problem
+        strategy, time_limit = _defaults(args, planning.control)
+        result = solve(problem, strategy, time_limit_s=time_limit)
     except PlanInputError as e:
         print(f"robion plan: {args.file}: {e}", file=sys.stderr)
         return 2

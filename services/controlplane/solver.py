@@ -10,7 +10,9 @@ integers r_ij (robots of model i served by GPU j, 0 where j does not host i) wit
 
 The objective is zero exactly when every GPU serves one model, so minimizing it keeps
 each model's traffic concentrated in few FIFO queues (large batches) while (2) splits a
-model over more GPUs only as far as the limits force.
+model over more GPUs only as far as the limits force. Among plans with the same (3) the
+integer program takes one with the fewest (model, GPU) pairs: (3) is zero for a model
+alone on 4 GPUs with 1 robot each, and that plan batches no better than the even split.
 
 Three strategies share one result type:
   * ``ip``  -- the integer program above, solved with OR-Tools CP-SAT;
@@ -24,13 +26,13 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Iterable, Mapping, Sequence
 
+from ortools.graph.python import max_flow
 from ortools.sat.python import cp_model
 
 log = logging.getLogger(__name__)
@@ -39,6 +41,28 @@ STRATEGIES = ("ip", "smg", "eps")
 # Stays under the 10 s budget for 32 models x 16 GPUs including model building; the result
 # says whether optimality was proven within it.
 DEFAULT_TIME_LIMIT_S = 8.0
+
+# Most GPUs one plan may span. A planning file states the count as a plain number: without a
+# bound `gpus: 100000000` allocated host lists until MemoryError. 4096 is far above any cluster
+# one control plane drives, and its model still builds in seconds.
+MAX_GPUS = 4096
+
+# Share of the seconds left that CP-SAT gets as deterministic time. Measured on the bench's 2-core
+# machine a deterministic second takes 2-2.5 wall seconds; a quarter keeps the deterministic limit the
+# one that ends a time-out there (so it ends the same way every run), and the 32 x 16 bench instances
+# reach the same objectives as with the whole limit.
+_DETERMINISTIC_SHARE = 0.25
+
+# CP-SAT is not started when the integer program has more (model, GPU) pairs than this per second left
+# of the time limit: on the bench's 2-core machine its presolve took 6 s for 16k pairs and 11 s for 32k
+# with 5 s left, most of it in steps that do not check the limit. The greedy plan is returned instead.
+_MAX_IP_VARS_PER_S = 2000
+# Above this many pairs CP-SAT's symmetry detection is off (see solve_ip).
+_SYMMETRY_MAX_VARS = 1024
+
+# Below this many seconds left of the time limit CP-SAT is not started: it could not even
+# finish presolve, and the greedy plan (if any) is what it would return anyway.
+_MIN_SOLVE_S = 0.05
 
 # CP-SAT rejects models whose linear constraints could overflow int64 when summed at
 # the variables' bounds; stay well below that so the exact scaled constraint (2) is safe.
@@ -111,10 +135,16 @@ class PlanResult:
 
     ``assignment`` maps every model name to ``{gpu_index: robots}`` holding only the
     GPUs with a positive robot count (a model with no robots maps to ``{}``); it is
-    empty when no assignment exists (IP infeasible or timed out without a solution).
+    empty when no assignment exists (IP infeasible, or timed out with neither a CP-SAT
+    solution nor a greedy plan).
     ``objective`` is the value of (3) for the assignment, None without one.
     ``feasible`` means the assignment exists and respects every GPU limit (2).
-    ``optimal`` is True only when CP-SAT proved the objective optimal.
+    ``optimal`` is True only when it is proven that no plan has a lower objective (3),
+    whichever of CP-SAT's and the greedy plan was returned; ``best_bound`` is the proven
+    lower bound on (3) behind that: a non-negative integer for ``ip`` (0 when CP-SAT did not
+    run or proved nothing more), None for ``smg`` and ``eps``.
+    ``source`` says where an ``ip`` assignment came from: ``cp-sat``, or ``greedy`` when the
+    quick greedy plan was at least as good as anything CP-SAT found within the time limit.
     """
 
     strategy: str
@@ -125,8 +155,9 @@ class PlanResult:
     status: str  # optimal | feasible | overloaded | infeasible | unknown
     solve_time_s: float
     diagnosis: str | None = None
-    best_bound: float | None = None  # CP-SAT's proven lower bound on the objective
+    best_bound: int | None = None  # proven lower bound on the objective (3)
     gpu_load: list[Fraction] = field(default_factory=list)  # sum_i r_ij / C_i per GPU
+    source: str | None = None  # ip only: "cp-sat" or "greedy"
 
     def to_json_dict(self) -> dict[str, object]:
         """The ``robion plan --json`` shape: assignment, objective, feasible only."""
@@ -145,10 +176,20 @@ def _is_int(x: object) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
 
 
+def check_num_gpus(num_gpus: object, path: str = "gpus") -> int:
+    """``num_gpus`` if it is a GPU count the planner takes (1..MAX_GPUS), else PlanInputError at ``path``.
+
+    Callers that build per-GPU lists from a count read from a file check it with this first."""
+    if not _is_int(num_gpus) or num_gpus < 1:
+        raise PlanInputError(path, f"expected a positive integer, got {num_gpus!r}")
+    if num_gpus > MAX_GPUS:
+        raise PlanInputError(path, f"at most {MAX_GPUS} GPUs can be planned, got {num_gpus}")
+    return num_gpus
+
+
 def validate_problem(problem: PlanProblem) -> None:
     """Raise PlanInputError (with a field path) for inputs the solver cannot take."""
-    if not _is_int(problem.num_gpus) or problem.num_gpus < 1:
-        raise PlanInputError("gpus", f"expected a positive integer, got {problem.num_gpus!r}")
+    check_num_gpus(problem.num_gpus)
     seen: set[str] = set()
     for m in problem.models:
         base = f"models.{m.name}"
@@ -186,6 +227,11 @@ def objective_value(problem: PlanProblem, assignment: Mapping[str, Mapping[int, 
     return total
 
 
+def pairs_used(problem: PlanProblem, assignment: Mapping[str, Mapping[int, int]]) -> int:
+    """Number of (model, GPU) pairs with at least one robot: the integer program's tie-break after (3)."""
+    return sum(1 for m in problem.models for r in assignment.get(m.name, {}).values() if r)
+
+
 def gpu_loads(problem: PlanProblem, assignment: Mapping[str, Mapping[int, int]]) -> list[Fraction]:
     """Exact sum_i r_ij / C_i for every GPU (1 = at its limit)."""
     loads = [Fraction(0)] * problem.num_gpus
@@ -221,7 +267,8 @@ def _finish(
     *,
     optimal: bool = False,
     status: str | None = None,
-    best_bound: float | None = None,
+    best_bound: int | None = None,
+    source: str | None = None,
 ) -> PlanResult:
     clean = {m.name: {j: r for j, r in sorted(assignment.get(m.name, {}).items()) if r} for m in problem.models}
     loads = gpu_loads(problem, clean)
@@ -241,6 +288,7 @@ def _finish(
         diagnosis=diagnosis,
         best_bound=best_bound,
         gpu_load=loads,
+        source=source,
     )
 
 
@@ -337,6 +385,29 @@ def _max_flow(n: int, edges: list[tuple[int, int, int]], s: int, t: int) -> tupl
         flow += push
 
 
+def _max_flow_fast(
+    n: int, edges: list[tuple[int, int, int]], s: int, t: int
+) -> tuple[int, list[bool], dict[tuple[int, int], int]] | None:
+    """_max_flow's answer from OR-Tools' C++ max flow; None where a capacity does not fit its int64.
+
+    Edmonds-Karp in Python took a minute on 4096 GPUs hosting different model sets (one augmenting
+    path per GPU, each a search of the whole graph), far past any planning time limit."""
+    source_total = sum(c for u, _, c in edges if u == s)
+    if source_total >= _MAX_SCALED_ACTIVITY or any(c >= _MAX_SCALED_ACTIVITY for _, _, c in edges):
+        return None
+    flow = max_flow.SimpleMaxFlow()
+    arcs = [flow.add_arc_with_capacity(u, v, c) for u, v, c in edges]
+    if flow.solve(s, t) != flow.OPTIMAL:
+        return None
+    reach = [False] * n
+    for v in flow.get_source_side_min_cut():
+        reach[v] = True
+    used: dict[tuple[int, int], int] = {}
+    for (u, v, _), a in zip(edges, arcs):
+        used[(u, v)] = used.get((u, v), 0) + flow.flow(a)
+    return flow.optimal_flow(), reach, used
+
+
 def _fmt(x: Fraction) -> str:
     return f"{float(x):.2f}"
 
@@ -359,12 +430,25 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
         return None
     scale = math.lcm(*(m.limit for m in models))  # exact integer capacities
     M, G = len(models), problem.num_gpus
-    s, t = M + G, M + G + 1
+    # GPUs hosting the same set of these models are interchangeable here, so each such set is one
+    # node offering its GPUs' total capacity: the same max flow and cut on a graph that stays small
+    # (4096 GPUs hosting every model are one node; one node per GPU took 48 s to cut in Python).
+    hosting: list[list[int]] = [[] for _ in range(G)]
+    for i, m in enumerate(models):
+        for j in m.gpus:
+            hosting[j].append(i)
+    by_set: dict[tuple[int, ...], list[int]] = {}
+    for j in range(G):
+        if hosting[j]:
+            by_set.setdefault(tuple(hosting[j]), []).append(j)
+    columns = list(by_set.items())
+    K = len(columns)
+    s, t = M + K, M + K + 1
     big = scale * (G + 1)
     edges = [(s, i, m.robots * (scale // m.limit)) for i, m in enumerate(models)]
-    edges += [(i, M + j, big) for i, m in enumerate(models) for j in m.gpus]
-    edges += [(M + j, t, scale) for j in range(G)]
-    flow, reach, used = _max_flow(M + G + 2, edges, s, t)
+    edges += [(i, M + k, big) for k, (key, _) in enumerate(columns) for i in key]
+    edges += [(M + k, t, scale * len(gpus)) for k, (_, gpus) in enumerate(columns)]
+    flow, reach, used = _max_flow_fast(M + K + 2, edges, s, t) or _max_flow(M + K + 2, edges, s, t)
     demand = sum(m.robots * (scale // m.limit) for m in models)
     if flow >= demand:
         return None
@@ -378,7 +462,14 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
         merged = [g for g in groups if any(hosts & set(models[k].gpus) for k in g)]
         new = [i] + [k for g in merged for k in g]
         groups = [g for g in groups if g not in merged] + [new]
-    gpu_used = [Fraction(used.get((M + j, t), 0), scale) for j in range(G)]
+    # Spread each set's flow over its GPUs, filling them in index order.
+    gpu_used = [Fraction(0)] * G
+    for k, (_, gpus) in enumerate(columns):
+        left = used.get((M + k, t), 0)
+        for j in gpus:
+            take = min(left, scale)
+            gpu_used[j] = Fraction(take, scale)
+            left -= take
 
     lines = ["infeasible: the GPUs hosting these models cannot serve their robots within the limits."]
     for g in sorted(groups, key=lambda g: min(g)):
@@ -424,34 +515,73 @@ def _fragmentation_message(problem: PlanProblem) -> str:
 # --------------------------------------------------------------------------- integer program
 
 
-def _greedy(problem: PlanProblem) -> dict[str, dict[int, int]] | None:
-    """Quick concentrated assignment used as a CP-SAT hint; None if it gets stuck.
+def plan_key(problem: PlanProblem, assignment: Mapping[str, Mapping[int, int]]) -> tuple[int, int]:
+    """What the integer program minimizes, in this order: objective (3), then (model, GPU) pairs used."""
+    return objective_value(problem, assignment), pairs_used(problem, assignment)
 
-    Biggest models first; each fills the hosting GPU with the most room for it, so
-    models sit whole on GPUs while they fit and split only across full GPUs.
-    """
-    load = [Fraction(0)] * problem.num_gpus
+
+def _greedy_pass(problem: PlanProblem, prefer_empty: bool) -> dict[str, dict[int, int]] | None:
+    """One greedy pass (see _greedy); None where a model's robots do not fit its hosts' room left."""
+    load: dict[int, Fraction] = {}  # GPUs given robots so far
+    occupied: dict[int, int] = {}  # and how many
     out: dict[str, dict[int, int]] = {}
     for m in _order_by_demand(problem):
         left, row = m.robots, {}
-        while left > 0:
-            room = {j: math.floor((1 - load[j]) * m.limit) for j in m.gpus if j not in row}
-            if not room or max(room.values()) <= 0:
+        # A GPU's room for this model stays the same while the model is placed: only the GPUs it
+        # takes change, and it never takes one twice. One sort per model, not a scan per robot batch.
+        room = {j: math.floor((1 - load[j]) * m.limit) if j in load else m.limit for j in m.gpus}
+        by_room = sorted((j for j in m.gpus if room[j] > 0), key=lambda g: (-room[g], occupied.get(g, 0), g))
+        k = 0
+        while left > 0 and k < len(by_room) and room[by_room[k]] < left:
+            j = by_room[k]  # no host takes the rest whole: fill the roomiest
+            row[j] = room[j]
+            left -= room[j]
+            k += 1
+        if left > 0:
+            if k == len(by_room):
                 return None
-            # Prefer a GPU that takes the rest whole with the least slack, else the roomiest.
-            fits = [j for j, c in room.items() if c >= left]
-            j = min(fits, key=lambda g: (room[g], g)) if fits else max(room, key=lambda g: (room[g], -g))
-            take = min(left, room[j])
-            row[j] = take
-            load[j] += Fraction(take, m.limit)
-            left -= take
+            fits = [g for g in by_room[k:] if room[g] >= left]
+            if prefer_empty:
+                # The rest whole on the GPU with the fewest robots of other models (each adds `left`
+                # to objective (3)), then the least slack.
+                j = min(fits, key=lambda g: (occupied.get(g, 0), room[g], g))
+            else:
+                # Best fit: the least slack, keeping roomy GPUs for the models still to come.
+                j = min(fits, key=lambda g: (room[g], occupied.get(g, 0), g))
+            row[j] = left
+        for j, c in row.items():
+            load[j] = load.get(j, Fraction(0)) + Fraction(c, m.limit)
+            occupied[j] = occupied.get(j, 0) + c
         out[m.name] = row
     return out
+
+
+def _greedy(problem: PlanProblem) -> dict[str, dict[int, int]] | None:
+    """Quick concentrated assignment: CP-SAT's starting point and the fallback plan; None if it gets stuck.
+
+    Biggest models first. While no hosting GPU takes all of a model's remaining robots, the roomiest
+    one is filled; the rest then goes whole to one GPU, so models sit whole on GPUs while they fit and
+    split only across full GPUs. Two passes differ in that last choice (fewest robots of other models
+    there, or best fit); the better valid plan by ``plan_key`` is returned. It never moves a robot
+    once placed, so it can get stuck on problems that are feasible.
+    """
+    best, best_key = None, None
+    for prefer_empty in (True, False):
+        plan = _greedy_pass(problem, prefer_empty)
+        if plan is None or check_assignment(problem, plan):
+            continue
+        key = plan_key(problem, plan)
+        if best_key is None or key < best_key:
+            best, best_key = plan, key
+    return best
 
 
 # Up to this bound a square is a table lookup, which CP-SAT linearizes tightly; measured
 # clearly faster than multiplication constraints on the bench instances (limits 2-12).
 _SQUARE_TABLE_MAX = 256
+# CP-SAT reports the objective bound as a double: keep the weighted objective where doubles
+# are exact integers, so the bound on (3) read back from it is exact.
+_MAX_EXACT_OBJECTIVE = 2**53
 
 
 def _add_square(mdl: cp_model.CpModel, x: cp_model.IntVar, ub: int, target: cp_model.IntVar) -> None:
@@ -461,65 +591,68 @@ def _add_square(mdl: cp_model.CpModel, x: cp_model.IntVar, ub: int, target: cp_m
         mdl.add_multiplication_equality(target, [x, x])
 
 
-def solve_ip(
-    problem: PlanProblem,
-    time_limit_s: float = DEFAULT_TIME_LIMIT_S,
-    num_workers: int | None = None,
-    random_seed: int = 0,
-) -> PlanResult:
-    """Solve (1)-(3) with CP-SAT. ``optimal`` tells whether the objective was proven minimal."""
-    start = time.perf_counter()
-    # CP-SAT does not refuse a negative or NaN time limit up front: it answers MODEL_INVALID,
-    # which would read as "no assignment found in time".
-    if not time_limit_s > 0:
-        raise PlanInputError("time_limit_s", f"expected a positive number of seconds, got {time_limit_s!r}")
-    diag = diagnose_capacity(problem)
-    if diag is not None:
-        return PlanResult("ip", {}, None, False, False, "infeasible", time.perf_counter() - start, diag)
+@dataclass
+class _IpModel:
+    """The CP-SAT model of (1)-(3) and what reading its answer needs."""
 
-    G = problem.num_gpus
-    mdl = cp_model.CpModel()
-    r: dict[tuple[int, int], cp_model.IntVar] = {}
+    mdl: cp_model.CpModel
+    r: dict[tuple[int, int], cp_model.IntVar]
+    # CP-SAT minimizes weight * 2 * (3) + (pairs used); weight = pairs + 1 keeps the pair count
+    # strictly below one unit of (3), so it only breaks ties. weight 1 and no pair term when the
+    # weighted objective would pass _MAX_EXACT_OBJECTIVE.
+    weight: int
+    num_pairs: int
+    with_pairs: bool
+    # Auxiliary variables, kept to give CP-SAT a complete hint.
+    used: dict[tuple[int, int], cp_model.IntVar] = field(default_factory=dict)
+    loads: dict[int, tuple[cp_model.IntVar, cp_model.IntVar, list[int]]] = field(default_factory=dict)
+    squares: dict[tuple[int, int], cp_model.IntVar] = field(default_factory=dict)
+    groups: dict[tuple[int, ...], list[int]] = field(default_factory=dict)
+
+
+class _OutOfTime(Exception):
+    """The time limit passed while the model was being built."""
+
+
+def _hosted(problem: PlanProblem) -> dict[int, list[int]]:
+    """GPU -> indices (in model order) of the models with robots that it hosts: the r_ij that exist."""
+    hosted: dict[int, list[int]] = {j: [] for j in range(problem.num_gpus)}
     for i, m in enumerate(problem.models):
-        if m.robots == 0:
-            continue
-        # r_ij <= C_i is implied by (2); stating it keeps domains small and the scaled
-        # capacity coefficients times bounds within int64.
-        ub = min(m.robots, m.limit)
-        # Constraint (1) sums one such variable per host: past int64 OR-Tools raises a TypeError
-        # (a bound itself too large) or CP-SAT refuses the model as MODEL_INVALID.
-        if ub * len(m.gpus) > _MAX_SCALED_ACTIVITY:
+        if m.robots:
+            for j in m.gpus:
+                hosted[j].append(i)
+    return hosted
+
+
+def _check_statable(problem: PlanProblem, hosted: Mapping[int, list[int]]) -> int:
+    """Raise PlanInputError where the integer program cannot be stated in int64; else the largest
+    |2 x objective (3)| its terms can reach (CP-SAT refuses an objective past int64).
+
+    solve_ip checks this before it may return the greedy plan, so such inputs are refused whatever
+    that plan is (the control plane then splits evenly, see traffic.assign)."""
+    for m in problem.models:
+        # Constraint (1) sums one variable of bound min(N_i, C_i) per host: past int64 OR-Tools raises
+        # a TypeError (a bound itself too large) or CP-SAT refuses the model as MODEL_INVALID.
+        if m.robots and min(m.robots, m.limit) * len(m.gpus) > _MAX_SCALED_ACTIVITY:
             raise PlanInputError(
                 f"models.{m.name}",
                 f"{m.robots} robots with limit {m.limit} on {len(m.gpus)} GPUs are too large for the integer "
                 "program (its sums would overflow int64)",
             )
-        for j in m.gpus:
-            r[i, j] = mdl.new_int_var(0, ub, f"r_{i}_{j}")
-        mdl.add(sum(r[i, j] for j in m.gpus) == m.robots)
-
-    twice_obj: list = []
-    obj_bound = 0  # largest |2 x objective| the terms below can reach; CP-SAT refuses one past int64
-    hosted: dict[int, list[int]] = {j: [i for (i, jj) in r if jj == j] for j in range(G)}
+    obj_bound = 0
     for j, models_j in hosted.items():
         if not models_j:
             continue
         limits = [problem.models[i].limit for i in models_j]
-        # Exact form of sum_i r_ij / C_i <= 1: multiply through by P = lcm(C_i on GPU j).
-        scale = math.lcm(*limits)
-        if scale * len(models_j) > _MAX_SCALED_ACTIVITY:
+        # Constraint (2) is stated exactly, multiplied through by lcm(C_i on GPU j).
+        if math.lcm(*limits) * len(models_j) > _MAX_SCALED_ACTIVITY:
             raise PlanInputError(
                 "models",
                 f"robot limits of the models on GPU {j} ({sorted(set(limits))}) have a least common "
                 "multiple too large for an exact integer capacity constraint",
             )
-        mdl.add(sum((scale // problem.models[i].limit) * r[i, j] for i in models_j) <= scale)
         if len(models_j) < 2:
-            continue  # a GPU with one model adds nothing to (3)
-        # sum_{i<k} r_ij r_kj = (L_j^2 - sum_i r_ij^2) / 2 with L_j = sum_i r_ij: one square
-        # per variable plus one per GPU instead of one product per model pair.
-        # L_j is at most the sum of its terms' bounds: with a large C_i but few robots the
-        # squares stay small, where max(C_i)^2 alone would overflow CP-SAT's int64 domains.
+            continue
         ubs = [min(problem.models[i].robots, problem.models[i].limit) for i in models_j]
         max_load = min(max(limits), sum(ubs))
         obj_bound += max_load * max_load + sum(ub * ub for ub in ubs)
@@ -529,80 +662,242 @@ def solve_ip(
                 f"robot populations and limits of the models on GPU {j} are too large for the integer "
                 "program's objective (squared robot counts overflow int64)",
             )
+    return obj_bound
+
+
+def _build_ip(problem: PlanProblem, hosted: Mapping[int, list[int]], obj_bound: int, deadline: float) -> _IpModel:
+    """The CP-SAT model of a problem _check_statable passed; raises _OutOfTime past ``deadline``."""
+    mdl = cp_model.CpModel()
+    r: dict[tuple[int, int], cp_model.IntVar] = {}
+    for i, m in enumerate(problem.models):
+        if m.robots == 0:
+            continue
+        # r_ij <= C_i is implied by (2); stating it keeps domains small and the scaled
+        # capacity coefficients times bounds within int64.
+        ub = min(m.robots, m.limit)
+        for j in m.gpus:
+            r[i, j] = mdl.new_int_var(0, ub, f"r_{i}_{j}")
+        mdl.add(cp_model.LinearExpr.sum([r[i, j] for j in m.gpus]) == m.robots)
+        if time.perf_counter() > deadline:
+            raise _OutOfTime
+
+    twice_obj: list = []
+    ip = _IpModel(mdl, r, 1, len(r), False)
+    for j, models_j in hosted.items():
+        if time.perf_counter() > deadline:
+            raise _OutOfTime
+        if not models_j:
+            continue
+        limits = [problem.models[i].limit for i in models_j]
+        # Exact form of sum_i r_ij / C_i <= 1: multiply through by P = lcm(C_i on GPU j).
+        scale = math.lcm(*limits)
+        mdl.add(cp_model.LinearExpr.weighted_sum([r[i, j] for i in models_j],
+                                                  [scale // problem.models[i].limit for i in models_j]) <= scale)
+        if len(models_j) < 2:
+            continue  # a GPU with one model adds nothing to (3)
+        # sum_{i<k} r_ij r_kj = (L_j^2 - sum_i r_ij^2) / 2 with L_j = sum_i r_ij: one square
+        # per variable plus one per GPU instead of one product per model pair.
+        # L_j is at most the sum of its terms' bounds: with a large C_i but few robots the
+        # squares stay small, where max(C_i)^2 alone would overflow CP-SAT's int64 domains.
+        ubs = [min(problem.models[i].robots, problem.models[i].limit) for i in models_j]
+        max_load = min(max(limits), sum(ubs))
         load = mdl.new_int_var(0, max_load, f"L_{j}")
-        mdl.add(load == sum(r[i, j] for i in models_j))
+        mdl.add(load == cp_model.LinearExpr.sum([r[i, j] for i in models_j]))
         load_sq = mdl.new_int_var(0, max_load * max_load, f"L2_{j}")
         _add_square(mdl, load, max_load, load_sq)
+        ip.loads[j] = (load, load_sq, models_j)
         twice_obj.append(load_sq)
         for i, ub in zip(models_j, ubs):
             sq = mdl.new_int_var(0, ub * ub, f"s_{i}_{j}")
             _add_square(mdl, r[i, j], ub, sq)
+            ip.squares[i, j] = sq
             twice_obj.append(-sq)
 
     # GPUs hosting the same models are interchangeable: order them by the first model's
     # count so the solver does not revisit permutations of one assignment.
-    groups: dict[tuple[int, ...], list[int]] = {}
     for j, models_j in hosted.items():
         if models_j:
-            groups.setdefault(tuple(sorted(models_j)), []).append(j)
-    for key, gpus in groups.items():
+            ip.groups.setdefault(tuple(sorted(models_j)), []).append(j)
+    for key, gpus in ip.groups.items():
         first = key[0]
         for a, b in zip(gpus, gpus[1:]):
             mdl.add(r[first, a] >= r[first, b])
 
-    hint = _greedy(problem)
-    if hint is not None:
-        for key, gpus in groups.items():
-            # Permute the hint's columns within each group so it satisfies the ordering above.
-            cols = sorted(
-                gpus,
-                key=lambda g: tuple(-hint.get(problem.models[i].name, {}).get(g, 0) for i in key),
-            )
-            for i in key:
-                row = hint.setdefault(problem.models[i].name, {})
-                vals = [row.get(g, 0) for g in cols]
-                for g, v in zip(gpus, vals):
-                    row[g] = v
-        for (i, j), v in r.items():
-            mdl.add_hint(v, hint.get(problem.models[i].name, {}).get(j, 0))
+    # Tie-break below (3): fewest (model, GPU) pairs, i.e. each model on as few GPUs as it can.
+    # (3) alone is indifferent between a lone model's robots on one GPU or spread over four.
+    ip.weight = ip.num_pairs + 1
+    ip.with_pairs = obj_bound * ip.weight + ip.num_pairs <= _MAX_EXACT_OBJECTIVE
+    if not ip.with_pairs:
+        ip.weight = 1
+        log.debug("objective too large for the pair-count tie-break; minimizing (3) alone")
+        mdl.minimize(cp_model.LinearExpr.sum(twice_obj))
+        return ip
+    for (i, j), v in r.items():
+        if time.perf_counter() > deadline:
+            raise _OutOfTime
+        u = mdl.new_bool_var(f"u_{i}_{j}")
+        mdl.add(v >= 1).only_enforce_if(u)
+        mdl.add(v == 0).only_enforce_if(~u)
+        ip.used[i, j] = u
+    for i, m in enumerate(problem.models):
+        if m.robots:
+            # Redundant: model i needs ceil(N_i / C_i) GPUs at least. Gives the pair term a lower bound from the start.
+            mdl.add(cp_model.LinearExpr.sum([ip.used[i, j] for j in m.gpus]) >= -(-m.robots // m.limit))
+    mdl.minimize(ip.weight * cp_model.LinearExpr.sum(twice_obj) + cp_model.LinearExpr.sum(list(ip.used.values())))
+    return ip
 
-    mdl.minimize(sum(twice_obj))
+
+def _add_hint(problem: PlanProblem, ip: _IpModel, plan: Mapping[str, Mapping[int, int]]) -> None:
+    """Hint every variable (auxiliaries too) from ``plan``: CP-SAT then starts from a complete solution."""
+    hint = {m.name: dict(plan.get(m.name, {})) for m in problem.models}
+    for key, gpus in ip.groups.items():
+        # Permute the plan's columns within each group so it satisfies the ordering constraints.
+        cols = sorted(gpus, key=lambda g: tuple(-hint[problem.models[i].name].get(g, 0) for i in key))
+        for i in key:
+            row = hint[problem.models[i].name]
+            vals = [row.get(g, 0) for g in cols]
+            for g, v in zip(gpus, vals):
+                row[g] = v
+    value = {(i, j): hint[problem.models[i].name].get(j, 0) for (i, j) in ip.r}
+    for ij, v in ip.r.items():
+        ip.mdl.add_hint(v, value[ij])
+    for ij, u in ip.used.items():
+        ip.mdl.add_hint(u, value[ij] > 0)
+    for j, (load, load_sq, models_j) in ip.loads.items():
+        total = sum(value[i, j] for i in models_j)
+        ip.mdl.add_hint(load, total)
+        ip.mdl.add_hint(load_sq, total * total)
+    for ij, sq in ip.squares.items():
+        ip.mdl.add_hint(sq, value[ij] * value[ij])
+
+
+def _bound_on_objective(ip: _IpModel, bound: float) -> int:
+    """Proven lower bound on objective (3) from CP-SAT's bound on its weighted objective, never below 0.
+
+    CP-SAT's bound can be negative (the squares it subtracts), and is a double; (3) is a count of robot
+    pairs, so the bound reported is max(0, ceil(.)) of the real objective."""
+    if not math.isfinite(bound):
+        return 0
+    # weighted = weight * twice + pairs with 0 <= pairs <= num_pairs, so twice >= (bound - num_pairs) / weight.
+    b = math.ceil(bound)
+    twice = -((ip.num_pairs - b) // ip.weight) if ip.with_pairs else b  # ceil((b - num_pairs) / weight)
+    return max(0, -(-twice // 2))
+
+
+def _cp_sat_parameters(solver: cp_model.CpSolver, seconds: float, num_workers: int | None, random_seed: int) -> None:
+    p = solver.parameters
+    # One worker follows one search path for a given model and seed; several race (CP-SAT's portfolio)
+    # and returned a different optimal plan from run to run, so the control plane re-pinned about half
+    # the robots on every re-solve of an unchanged cluster. On the bench instances (2 cores) one worker
+    # reaches the same objectives; num_workers > 1 trades that determinism for parallel speed.
+    p.num_workers = num_workers or 1
+    p.random_seed = random_seed
+    # The deterministic limit (CP-SAT's work count, about seconds on its reference machine) ends a
+    # time-out at the same point on every run; the wall-clock limit stays the hard cap and only comes
+    # first on a machine more than 1 / _DETERMINISTIC_SHARE times slower than that reference.
+    p.max_deterministic_time = seconds * _DETERMINISTIC_SHARE
+    p.max_time_in_seconds = seconds
+
+
+def _min_pairs(problem: PlanProblem) -> int:
+    """Fewest (model, GPU) pairs any plan can use: model i needs ceil(N_i / C_i) GPUs, as r_ij <= C_i."""
+    return sum(-(-m.robots // m.limit) for m in problem.models)
+
+
+def solve_ip(
+    problem: PlanProblem,
+    time_limit_s: float = DEFAULT_TIME_LIMIT_S,
+    num_workers: int | None = None,
+    random_seed: int = 0,
+) -> PlanResult:
+    """Solve (1)-(3) within ``time_limit_s`` seconds, model building included.
+
+    A greedy plan is made first (milliseconds). CP-SAT starts from it and gets what is left of the
+    time limit; the better of its best plan and the greedy one (by ``plan_key``) is returned, so a
+    time-out still returns the greedy plan when CP-SAT found nothing better (``source`` says which).
+    ``optimal`` says whether no plan has a lower objective (3) (CP-SAT's bound, or the greedy plan at
+    0). The same problem gives the same plan, unless the wall-clock limit ends the search before the
+    deterministic one (see _DETERMINISTIC_SHARE) or ``num_workers`` > 1.
+    """
+    start = time.perf_counter()
+    # CP-SAT does not refuse a negative or NaN time limit up front: it answers MODEL_INVALID,
+    # which would read as "no assignment found in time".
+    if not time_limit_s > 0:
+        raise PlanInputError("time_limit_s", f"expected a positive number of seconds, got {time_limit_s!r}")
+    deadline = start + float(time_limit_s)
+    greedy = _greedy(problem)
+    if greedy is None:
+        # A valid greedy plan proves the problem feasible; only without one is the capacity check worth its time.
+        diag = diagnose_capacity(problem)
+        if diag is not None:
+            return PlanResult("ip", {}, None, False, False, "infeasible", time.perf_counter() - start, diag)
+
+    def fallback(reason: str, bound: int = 0) -> PlanResult:
+        """The greedy plan when CP-SAT has none at least as good; 'unknown' without one. 0 always bounds (3)."""
+        if greedy is not None:
+            log.debug("ip: returning the greedy plan (%s)", reason)
+            optimal = objective_value(problem, greedy) <= bound
+            return _finish(problem, "ip", greedy, start, optimal=optimal, status="optimal" if optimal else "feasible",
+                           best_bound=bound, source="greedy")
+        msg = (
+            f"no feasible assignment found within the {time_limit_s:g}s time limit ({reason}); "
+            "the problem may still be feasible: raise the time limit."
+        )
+        return PlanResult("ip", {}, None, False, False, "unknown", time.perf_counter() - start, msg, bound)
+
+    hosted = _hosted(problem)
+    obj_bound = _check_statable(problem, hosted)
+    if greedy is not None and plan_key(problem, greedy) == (0, _min_pairs(problem)):
+        # Nothing can beat it on either term: every GPU serves one model, each model on as few GPUs as it can.
+        return fallback("optimal by construction")
+    # Past this size CP-SAT's presolve alone outlasts the time left (32k variables: 11 s with 5 s left,
+    # most of it in steps that do not check the limit), so it is not started at all.
+    num_vars = sum(len(m.gpus) for m in problem.models if m.robots)
+    if num_vars > _MAX_IP_VARS_PER_S * (deadline - time.perf_counter()):
+        return fallback(f"an integer program of {num_vars} (model, GPU) pairs is too large for the time left")
+    try:
+        ip = _build_ip(problem, hosted, obj_bound, deadline)
+    except _OutOfTime:
+        return fallback("the time limit passed while building the integer program")
+    if greedy is not None:
+        _add_hint(problem, ip, greedy)
+    remaining = deadline - time.perf_counter()
+    if remaining < _MIN_SOLVE_S:
+        return fallback("the time limit passed while building the integer program")
 
     solver = cp_model.CpSolver()
-    solver.parameters.max_time_in_seconds = float(time_limit_s)
-    solver.parameters.num_workers = num_workers or min(8, os.cpu_count() or 1)
-    solver.parameters.random_seed = random_seed
-    status = solver.solve(mdl)
+    _cp_sat_parameters(solver, remaining, num_workers, random_seed)
+    if num_vars > _SYMMETRY_MAX_VARS:
+        # CP-SAT's symmetry detection ignored the time limit on large models (31 s over an 8 s limit at
+        # 8192 pairs); the ordering constraints in _build_ip already break the symmetry between GPUs.
+        solver.parameters.symmetry_level = 0
+    status = solver.solve(ip.mdl)
     name = solver.status_name(status)
     log.debug("CP-SAT %s in %.3fs: %s", name, solver.wall_time, solver.response_stats())
 
-    if status in (cp_model.OPTIMAL, cp_model.FEASIBLE):
-        assignment: dict[str, dict[int, int]] = {m.name: {} for m in problem.models}
-        for (i, j), v in r.items():
-            assignment[problem.models[i].name][j] = int(solver.value(v))
-        optimal = status == cp_model.OPTIMAL
-        res = _finish(
-            problem,
-            "ip",
-            assignment,
-            start,
-            optimal=optimal,
-            status="optimal" if optimal else "feasible",
-            best_bound=solver.best_objective_bound / 2,
-        )
-        if not res.feasible:  # would be a formulation bug; never hand out an overload silently
-            raise AssertionError(f"CP-SAT returned an overloaded assignment: {res.diagnosis}")
-        return res
     if status == cp_model.MODEL_INVALID:
         # A formulation the checks above did not foresee; not a time-out, so say what CP-SAT refused.
-        raise PlanInputError("models", f"CP-SAT refused the integer program (int64 bounds?): {mdl.validate()}")
+        raise PlanInputError("models", f"CP-SAT refused the integer program (int64 bounds?): {ip.mdl.validate()}")
     if status == cp_model.INFEASIBLE:
-        return PlanResult("ip", {}, None, False, False, "infeasible", time.perf_counter() - start, _fragmentation_message(problem))
-    msg = (
-        f"no feasible assignment found within the {time_limit_s:g}s time limit (CP-SAT status {name}); "
-        "the problem may still be feasible: raise the time limit."
-    )
-    return PlanResult("ip", {}, None, False, False, "unknown", time.perf_counter() - start, msg)
+        if greedy is not None:  # a checked plan exists: the formulation is wrong, the plan is not
+            log.error("CP-SAT found the integer program infeasible although a valid plan exists; returning that plan")
+            return fallback("CP-SAT status INFEASIBLE")
+        return PlanResult("ip", {}, None, False, False, "infeasible", time.perf_counter() - start,
+                          _fragmentation_message(problem))
+    bound = _bound_on_objective(ip, solver.best_objective_bound)
+    if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
+        return fallback(f"CP-SAT status {name}", bound)
+
+    assignment: dict[str, dict[int, int]] = {m.name: {} for m in problem.models}
+    for (i, j), v in ip.r.items():
+        assignment[problem.models[i].name][j] = int(solver.value(v))
+    if check_assignment(problem, assignment):  # would be a formulation bug; never hand out an overload silently
+        raise AssertionError(f"CP-SAT returned an invalid assignment: {check_assignment(problem, assignment)}")
+    if greedy is not None and plan_key(problem, greedy) < plan_key(problem, assignment):
+        return fallback(f"CP-SAT's best plan within the time limit was worse (status {name})", bound)
+    optimal = objective_value(problem, assignment) <= bound
+    return _finish(problem, "ip", assignment, start, optimal=optimal, status="optimal" if optimal else "feasible",
+                   best_bound=bound, source="cp-sat")
 
 
 def solve(

@@ -23,9 +23,10 @@ class Quotas:
 def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[str, int] | None = None) -> Quotas:
     """Solve the robot-to-GPU assignment over the executors alive now (``placement``: executor -> models).
 
-    Each limit is first cut to ``control.headroom`` of C_i (``with_headroom``). When the
-    integer program is infeasible the even split is used instead, so every robot still has
-    a GPU, and the diagnosis is logged for the operator.
+    Each limit is first cut to ``control.headroom`` of C_i (``with_headroom``). The integer program
+    returns its greedy plan when CP-SAT finds none better within ``control.solve_time_limit_s``; only
+    without any plan (infeasible, or a time-out where the greedy plan got stuck) is the even split used
+    instead, so every robot still has a GPU, and the diagnosis is logged for the operator.
     """
     demands = {m.name: m for m in cfg.models if m.robots > 0}
     if cfg.control.strategy == "none" or not demands:
@@ -68,10 +69,20 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[s
         log.error("cannot solve the traffic assignment: %s; splitting robots evenly instead", exc)
         result = solve(problem, "eps")
     if not result.assignment:
-        log.error("traffic assignment is infeasible: %s; splitting robots evenly instead", result.diagnosis)
+        what = "found no assignment in time" if result.status == "unknown" else "is infeasible"
+        log.error("traffic assignment %s: %s; splitting robots evenly instead", what, result.diagnosis)
         result = solve(problem, "eps")
     elif not result.feasible:
         log.warning("traffic assignment exceeds GPU limits: %s", result.diagnosis)
     robots = {m: {executors[j]: n for j, n in per_gpu.items() if n} for m, per_gpu in result.assignment.items()}
-    log.info("traffic assignment (%s, objective %s): %s", result.strategy, result.objective, robots)
+    log.info("traffic assignment (%s, objective %s): %s", _describe(result), result.objective, robots)
     return Quotas(robots, {n: int(c) for n, c in limit.items() if c is not None}, result)
+
+
+def _describe(result: PlanResult) -> str:
+    """Strategy, and for ip where the plan came from and whether it is proven optimal."""
+    if result.strategy != "ip":
+        return result.strategy
+    # "greedy": CP-SAT found no better plan within control.solve_time_limit_s (raise it for a better one).
+    proof = "proven optimal" if result.optimal else f"not proven optimal, lower bound {result.best_bound}"
+    return f"ip, {result.source} plan, {proof}"
