@@ -137,8 +137,10 @@ class ModelConfig:
     # limit = C_i, robots of this model one GPU sustains at the target SLO attainment (measured when absent)
 
 
-# Model settings only the traffic controller reads (executors never use a population).
-TRAFFIC_ONLY_MODEL_FIELDS = frozenset({"robots"})
+# Model settings only the traffic controller reads: executors never use a population, and a configured limit
+# only tells them not to measure one. (An apply that removes a limit leaves the model unplanned until an executor
+# measures it at its next start, as for a model added without one.)
+TRAFFIC_ONLY_MODEL_FIELDS = frozenset({"robots", "limit"})
 
 
 def executor_settings(model: ModelConfig) -> dict[str, Any]:

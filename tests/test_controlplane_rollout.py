@@ -58,8 +58,8 @@ def test_new_weights_that_cannot_be_loaded_fail_their_steps(tmp_path):
 
 
 def test_a_population_change_reloads_no_executor(tmp_path):
-    """`robots` is read by the traffic controller only; a change of it re-solves the quotas. It used to
-    drain and reload every executor hosting the model in turn (engines rebuilt, minutes on a GPU)."""
+    """`robots` and `limit` are read by the traffic controller only; a change of them re-solves the quotas. It
+    used to drain and reload every executor hosting the model in turn (engines rebuilt, minutes on a GPU)."""
     path, data = cluster_config(tmp_path)
     for m, robots in zip(data["models"], (4, 2)):
         m.update(robots=robots, limit=4)
@@ -76,6 +76,11 @@ def test_a_population_change_reloads_no_executor(tmp_path):
         status = control_status(cfg.control.bind, 5)
         assert status["rollout"]["pending"] == [] and not any(e["draining"] for e in status["executors"].values())
         assert {m: sum(q.values()) for m, q in status["table"]["quotas"].items()} == {"toy-a": 6, "toy-b": 2}
+        # A robot limit is read by the traffic controller only too (an executor measures none where one is given).
+        new["models"][0]["limit"] = 6
+        reply = control_request(cfg.control.bind, "apply", timeout_s=30, config=yaml.safe_dump(new))
+        assert reply is not None and reply["kind"] == "applied" and reply["steps"] == [], reply
+        assert control_status(cfg.control.bind, 5)["table"]["limits"]["toy-a"] == 6
         # A change the executors do need (the deadline they schedule by) still reloads the hosts.
         new["models"][1]["slo_ms"] = 400
         reply = control_request(cfg.control.bind, "apply", timeout_s=30, config=yaml.safe_dump(new))
