@@ -266,3 +266,25 @@ def test_summary_lower_bound_is_never_negative(tmp_path: Path) -> None:
     assert bound or "proven optimal" in summary, summary
     if bound:
         assert bound.group(1).isdigit() and int(bound.group(1)) <= objective, summary
+
+
+def test_a_cluster_model_without_a_limit_is_left_out_as_the_control_plane_does(tmp_path):
+    # The control plane plans the models it has limits for and spreads the others round-robin per request
+    # (traffic.assign); robion plan refused the whole file, and listed limitless models with "limit 1".
+    cluster = """\
+models:
+  - {name: A, arch: toy, robots: 6, limit: 4}
+  - {name: B, arch: toy, robots: 3}
+  - {name: C, arch: toy}
+executors:
+  - {name: ex0, models: [A, B, C]}
+  - {name: ex1, models: [A, B]}
+"""
+    out = run_plan(tmp_path, cluster, "--json")
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["assignment"] == {"A": {"0": 4, "1": 2}}
+    assert "no robot limit for B: left out of the plan" in out.stderr
+    table = run_plan(tmp_path, cluster)
+    assert table.returncode == 0 and "B " not in table.stdout and "C " not in table.stdout
+    nothing = run_plan(tmp_path, cluster.replace("robots: 6, limit: 4", "robots: 0"))
+    assert nothing.returncode == 0 and "nothing to assign" in nothing.stdout

@@ -106,12 +106,16 @@ def problem_from_cluster(cfg: ClusterConfig, executors: Sequence[str] | None = N
             continue
         for model in placed:
             hosts.setdefault(model, []).append(j)
-    models = []
-    for i, m in enumerate(cfg.models):
-        if m.robots and m.limit is None:
-            raise PlanInputError(f"models[{i}].limit", f"{m.name} has {m.robots} robots but no robot limit")
-        models.append(ModelDemand(m.name, m.limit or 1, m.robots, tuple(hosts.get(m.name, ()))))
+    # A model without a limit is left out, as the control plane leaves it out until one is measured
+    # (traffic.assign): its robots go round-robin per request meanwhile. unplanned() names them.
+    models = [ModelDemand(m.name, m.limit, m.robots, tuple(hosts.get(m.name, ()))) for m in cfg.models
+              if m.limit is not None]
     return PlanProblem(len(names), tuple(models))
+
+
+def unplanned(cfg: ClusterConfig) -> list[str]:
+    """Models of a cluster config with robots but no configured limit: problem_from_cluster leaves them out."""
+    return [m.name for m in cfg.models if m.robots and m.limit is None]
 
 
 @dataclass(frozen=True)
@@ -120,6 +124,7 @@ class PlanningInput:
 
     problem: PlanProblem
     control: ControlConfig | None = None
+    unplanned: tuple[str, ...] = ()  # a cluster config's models with robots but no limit (left out of problem)
 
 
 def load_planning_input(path: str | Path, headroom: float | None = None) -> PlanningInput:
@@ -149,7 +154,7 @@ def load_planning_input(path: str | Path, headroom: float | None = None) -> Plan
             problem = with_headroom(problem_from_cluster(cfg), cfg.control.headroom if headroom is None else headroom)
         except ConfigError as e:
             raise PlanInputError("", str(e)) from None
-        return PlanningInput(problem, cfg.control)
+        return PlanningInput(problem, cfg.control, tuple(unplanned(cfg)))
     return PlanningInput(with_headroom(problem_from_mapping(data), 1.0 if headroom is None else headroom))
 
 
@@ -227,7 +232,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         description="Assign robots to GPUs from populations, robot limits and model placement.",
     )
     ap.add_argument("file", help="planning file (YAML: gpus, models: {name: {limit, robots, gpus}}) or a cluster config "
-                                 "(executors are the GPUs; models need robots and limit)")
+                                 "(executors are the GPUs; models without a limit are left out, as the control plane leaves them "
+                                 "out until one is measured)")
     ap.add_argument("--strategy", choices=STRATEGIES, help="ip (integer program), smg, eps "
                                                            "(default: a cluster config's control.strategy, else ip)")
     ap.add_argument("--json", action="store_true", help='print {"assignment", "objective", "feasible"} as JSON')
@@ -245,9 +251,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except PlanInputError as e:
         print(f"robion plan: {args.file}: {e}", file=sys.stderr)
         return 2
+    if planning.unplanned:
+        print(f"robion plan: {args.file}: no robot limit for {', '.join(planning.unplanned)}: left out of the plan; "
+              "the control plane spreads their robots round-robin per request until a limit is measured "
+              "(control.limits.auto) or configured", file=sys.stderr)
 
     if args.json:
         print(json.dumps(result.to_json_dict()))
+    elif not any(m.robots for m in problem.models):
+        print("nothing to assign: no model has both robots and a robot limit")
     elif result.assignment:
         print(format_table(problem, result))
         print(_summary(result))
