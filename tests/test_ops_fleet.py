@@ -41,7 +41,7 @@ class HalfDeafRouter:
             msg = protocol.decode(frames)
             if isinstance(msg, protocol.Hello):
                 reply = protocol.Metadata(id=msg.id, models={"toy-a": protocol.ModelInfo.from_wire(TOY_INFO)})
-            elif identity.endswith(b"-000"):  # robot 0: a real error answer
+            elif msg.robot.endswith("-000"):  # robot 0 (by name: each client has a socket identity of its own)
                 self.answered += 1
                 reply = protocol.ErrorReply(id=msg.id, code=protocol.ErrorCode.UNAVAILABLE, message="no executor")
             else:  # robot 1: the reply is lost
