@@ -116,6 +116,9 @@ def _check(pred, text: str) -> dict[str, Any]:
 
 _ADDRESS = _check(valid_address, "expected an address like tcp://HOST:PORT, ipc://PATH or inproc://NAME")
 _SEED = _check(_seed, "expected a non-negative integer below 2**63")
+# Most executors one cluster config describes: the traffic controller plans at most that many GPUs
+# (services/controlplane/solver.py, MAX_GPUS), and `gpus: N` must not build a list of any size first.
+MAX_EXECUTORS = 4096
 # An empty path would read as "no file" further on: random weights or byte ids served where a file was meant.
 _FILE = _check(lambda v: v.strip() != "", "expected a file path (leave the key out for none)")
 
@@ -496,6 +499,8 @@ def _expand_placement(data: Any) -> Any:
             raise ConfigError("gpus: give either gpus or executors, not both")
         if isinstance(gpus, bool) or not isinstance(gpus, int) or gpus < 1:
             raise ConfigError("gpus: expected a positive integer")
+        if gpus > MAX_EXECUTORS:  # before a list of that many executors is built
+            raise ConfigError(f"gpus: at most {MAX_EXECUTORS} executors in one cluster, got {gpus}")
         data["executors"] = [{"name": f"gpu{j}", "device": f"cuda:{j}", "models": []} for j in range(gpus)]
     executors = data.get("executors")
     if not isinstance(executors, list) or not all(isinstance(e, dict) for e in executors):

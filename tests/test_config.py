@@ -220,3 +220,11 @@ def test_merge_keys_may_still_override():
     cfg = config_from_text("models:\n  - &a {name: a, arch: toy, slo_ms: 100}\n  - {<<: *a, name: b, slo_ms: 50}\n"
                            "executors:\n  - {name: e0, models: [a, b]}\n")
     assert [(m.name, m.slo_ms) for m in cfg.models] == [("a", 100.0), ("b", 50.0)]
+
+
+def test_the_gpus_shorthand_is_capped_before_it_builds_executors():
+    from shared.config import MAX_EXECUTORS, _expand_placement
+
+    with pytest.raises(ConfigError, match=f"gpus: at most {MAX_EXECUTORS} executors in one cluster, got 100000000"):
+        _expand_placement(placed("mix", gpus=100_000_000))
+    assert len(_expand_placement(placed("mix", gpus=MAX_EXECUTORS))["executors"]) == MAX_EXECUTORS
