@@ -592,16 +592,25 @@ def load_config(path: str | Path) -> ClusterConfig:
     return config_from_text(text, str(path), path.resolve().parent)
 
 
-def config_from_text(text: str, source: str = "config", folder: Path | None = None) -> ClusterConfig:
-    """A checked config from YAML text (a file's, or one sent with `robion ctl apply`); ``source`` names it."""
+def parse_yaml(text: str) -> Any:
+    """``load_yaml`` with every way it can fail as a ConfigError saying where: a repeated key, text that is
+    not YAML, nesting too deep. Cluster configs and planning files are both read through this."""
     try:
-        data = load_yaml(text)
+        return load_yaml(text)
     except DuplicateKeyError as exc:
-        raise ConfigError(f"{source}: {exc}") from None
+        raise ConfigError(str(exc)) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{source}: not valid YAML{where}") from None
+        raise ConfigError(f"not valid YAML{where}") from None
     except RecursionError:  # PyYAML composes nested collections recursively
-        raise ConfigError(f"{source}: not valid YAML (nested too deeply)") from None
+        raise ConfigError("not valid YAML (nested too deeply)") from None
+
+
+def config_from_text(text: str, source: str = "config", folder: Path | None = None) -> ClusterConfig:
+    """A checked config from YAML text (a file's, or one sent with `robion ctl apply`); ``source`` names it."""
+    try:
+        data = parse_yaml(text)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
     return config_from_dict(data, folder)

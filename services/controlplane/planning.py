@@ -22,9 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-import yaml
 
-from shared.config import ClusterConfig, ConfigError, ControlConfig, DuplicateKeyError, config_from_dict, load_yaml
+from shared.config import ClusterConfig, ConfigError, ControlConfig, config_from_dict, parse_yaml
 
 from services.controlplane.solver import (
     DEFAULT_TIME_LIMIT_S,
@@ -139,13 +138,9 @@ def load_planning_input(path: str | Path, headroom: float | None = None) -> Plan
     except UnicodeDecodeError as e:
         raise PlanInputError("", f"not a UTF-8 text file (byte {e.start})") from None
     try:
-        data = load_yaml(text)
-    except DuplicateKeyError as e:  # safe_load kept the last value and planned something else than written
+        data = parse_yaml(text)
+    except ConfigError as e:
         raise PlanInputError("", str(e)) from None
-    except yaml.YAMLError as e:
-        raise PlanInputError("", f"not valid YAML: {e}") from None
-    except RecursionError:  # PyYAML composes nested collections recursively
-        raise PlanInputError("", "not valid YAML (nested too deeply)") from None
     # A cluster config written with the placement shorthand (`gpus: N` + `placement:`) has no
     # `executors` key until it is expanded; a planning file never has `placement`.
     if isinstance(data, dict) and ("executors" in data or "placement" in data):
