@@ -326,8 +326,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--start", type=int, default=1, help="first robot count of the search")
     p.add_argument("--max-robots", type=int, default=256)
     p.add_argument("--screen-epochs", type=int, default=1,
-                   help="search: epochs of the bracketing points; only the candidate runs all --epochs "
-                        "(0: every point runs all epochs)")
+                   help="search: epochs of the bracketing points; the candidate and the count above it run "
+                        "all --epochs (0: every point runs all epochs)")
     p.add_argument("--sweep", help="comma-separated robot counts: measure each (all epochs) instead of searching")
     p.add_argument("--no-early-stop", action="store_true",
                    help="search: run every epoch even once a point can no longer pass")

@@ -13,10 +13,12 @@ import threading
 import time
 from pathlib import Path
 
-from shared.config import dial_address, positive_number
+from shared.config import ConfigError, dial_address, parse_yaml, positive_number
 from shared.service import load_or_exit, log_level
 
 DEFAULT_DEMO = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
+# How long `robion ctl` waits for an answer beyond the traffic re-solve that drain, resume and apply run first.
+ANSWER_MARGIN_S = 10.0
 
 
 def positive_seconds(text: str) -> float:
@@ -141,6 +143,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def applied_solve_limit(text: str) -> float:
+    """The traffic solve's time limit a file sent with `apply` sets (0 when it sets none or is refused anyway)."""
+    try:
+        control = parse_yaml(text).get("control")
+    except (ConfigError, AttributeError):
+        return 0.0
+    limit = control.get("solve_time_limit_s") if isinstance(control, dict) else None
+    return float(limit) if isinstance(limit, (int, float)) and not isinstance(limit, bool) and 0 < limit < 1e6 else 0.0
+
+
 def cmd_ctl(args: argparse.Namespace) -> int:
     from shared.cluster import control_request, control_status
 
@@ -166,9 +178,14 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         except UnicodeDecodeError:  # a binary file named by mistake: not a config
             print(f"robion ctl apply: cannot read {args.target}: not a UTF-8 text file", file=sys.stderr)
             return 2
-        reply = control_request(address, "apply", timeout_s=30.0, config=text)
+        # The control plane answers once it has re-solved the traffic plan under the applied file's time limit.
+        solve_s = applied_solve_limit(text)
+        reply = control_request(address, "apply", timeout_s=ANSWER_MARGIN_S + max(solve_s, cfg.control.solve_time_limit_s),
+                                config=text)
     else:
-        reply = control_request(address, args.action, timeout_s=5.0, executor=args.target)
+        # A drain or resume re-solves the traffic plan before the answer, for up to control.solve_time_limit_s.
+        reply = control_request(address, args.action, timeout_s=ANSWER_MARGIN_S + cfg.control.solve_time_limit_s,
+                                executor=args.target)
     if reply is None:
         print(f"control plane at {address} does not answer", file=sys.stderr)
         return 1
@@ -179,6 +196,9 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         print(f"{args.action} {args.target}: routing table v{reply.get('version')}")
         return 0
     print(f"applied: routing table v{reply['version']}; executors to reload in turn: {reply['steps'] or 'none'}")
+    for name, models in (reply.get("unhosted") or {}).items():
+        print(f"warning: while {name} reloads, no other executor serves {', '.join(models)}: "
+              "their requests are answered UNAVAILABLE until it is back", file=sys.stderr)
     if not args.wait:
         return 0
     end = time.monotonic() + args.timeout
@@ -239,6 +259,10 @@ def main(argv: list[str] | None = None) -> int:
     # `plan` and `bench` hand what follows them to their own parsers. argparse keeps an option-like first
     # argument (`robion plan --help`) out of a REMAINDER, so it comes back here as an unknown one.
     args, unknown = p.parse_known_args(argv)
+    if args.cmd == "ctl" and args.target is None and len(unknown) == 1 and not unknown[0].startswith("-"):
+        # argparse fills `action target?` in one go: with an option between them (`ctl apply --no-wait new.yaml`)
+        # the target is left over here.
+        args.target = unknown.pop()
     if unknown:
         if args.cmd not in ("plan", "bench"):
             p.error(f"unrecognized arguments: {' '.join(unknown)}")

@@ -119,6 +119,8 @@ _SEED = _check(_seed, "expected a non-negative integer below 2**63")
 # Most executors one cluster config describes: the traffic controller plans at most that many GPUs
 # (services/controlplane/solver.py, MAX_GPUS), and `gpus: N` must not build a list of any size first.
 MAX_EXECUTORS = 4096
+MAX_EXECUTOR_NAME_BYTES = 255  # a ZeroMQ socket identity's limit (executors are routed by name)
+MAX_MESSAGE_LIMIT = 1 << 32  # router.max_message_bytes at most (4 GiB)
 # An empty path would read as "no file" further on: random weights or byte ids served where a file was meant.
 _FILE = _check(lambda v: v.strip() != "", "expected a file path (leave the key out for none)")
 
@@ -174,7 +176,9 @@ class ExecutorConfig:
 
 @dataclass
 class EngineConfig:
-    kind: str = "monolithic"  # which engine runs the stages: a key of ENGINES in services/executor/engine.py
+    # which engine runs the stages: a key of ENGINES in services/executor/engine.py, or auto (robion on a GPU,
+    # monolithic on the CPU: services/executor/engine.resolve_kind)
+    kind: str = "auto"
     max_batch: int = field(default=2, metadata=_check(_power_of_two, "expected a power of two (1, 2, 4, ...)"))
     policy: str = "esf"  # esf (earliest-SLO-first), rr (round-robin), lqf (largest-queue-first)
     max_queue: int = field(default=256, metadata=_check(positive_number, "expected a positive integer"))
@@ -211,8 +215,9 @@ class RouterConfig:
     backend: str = field(default="tcp://127.0.0.1:5556", metadata=_ADDRESS)  # executors connect here (DEALER)
     backend_connect: str | None = field(default=None, metadata=_ADDRESS)
     # address executors dial when it differs from the bind (containers)
-    max_message_bytes: int = field(default=16 * 1024 * 1024,
-                                   metadata=_check(positive_number, "expected a positive integer"))
+    # Capped: the sockets' frame limit is twice this (plus headers) in a C long.
+    max_message_bytes: int = field(default=16 * 1024 * 1024, metadata=_check(
+        lambda v: positive_number(v) and v <= MAX_MESSAGE_LIMIT, "expected a positive integer up to 4 GiB (2**32)"))
     request_timeout_s: float = field(default=30.0, metadata=_check(positive_number, "expected a positive number"))
     metrics_port: int = field(default=9100, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
 
@@ -293,7 +298,7 @@ def dial_address(bind: str, connect: str | None = None) -> str:
 
 
 STRATEGIES = ("ip", "smg", "eps", "none")
-ENGINE_KINDS = ("monolithic", "robion", "disagg", "static", "disjoint", "procdisagg", "interdisagg")  # ENGINES in engine.py
+ENGINE_KINDS = ("auto", "monolithic", "robion", "disagg", "static", "disjoint", "procdisagg", "interdisagg")  # ENGINES in engine.py
 PROCDISAGG_WORKERS = ("process", "thread")
 POLICIES = ("esf", "rr", "lqf")
 SM_POLICIES = ("table", "none", "static")
@@ -415,6 +420,11 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
         raise ConfigError("executors: at least one executor is needed")
     _unique_names([e.name for e in cfg.executors], "executors")
     for j, e in enumerate(cfg.executors):
+        # The name is the executor's ZeroMQ socket identity: at most 255 bytes, and one starting with a zero byte
+        # is reserved by ZeroMQ. Either failed only when the executor bound its sockets, as a traceback.
+        if len(e.name.encode()) > MAX_EXECUTOR_NAME_BYTES or e.name.startswith("\0"):
+            raise ConfigError(f"executors[{j}].name: expected at most {MAX_EXECUTOR_NAME_BYTES} bytes (UTF-8), "
+                              "not starting with a zero byte")
         if not e.models:
             raise ConfigError(f"executors[{j}].models: an executor needs at least one model")
         for k, name in enumerate(e.models):

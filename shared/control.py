@@ -17,7 +17,7 @@ anyone   -> control plane: status                    -> status {executors, table
                                                                 settling, ready, rollout}
 control plane -> executor: load {models: [model config], load_id}  (a placement change's reload; not answered:
                            the executor registers again once it is over, its `load` naming load_id)
-operator -> control plane: apply {config}            -> applied {steps, version}
+operator -> control plane: apply {config}            -> applied {steps, version, unhosted}
                            drain / resume {executor} -> ok {version}
 executor -> router (backend, empty robot frame): executor_hello {executor, instance}  (not answered; the
                            instance is the process's token, as in register: a new one under a known name

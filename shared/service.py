@@ -39,8 +39,11 @@ def service_args(name: str, argv: list[str] | None = None, extra=None) -> argpar
 
 
 def setup_logging(name: str, level: str) -> None:
+    # The name (an executor's, from the config, --name or $HOSTNAME) goes into a %-style format: a "%" in it
+    # would turn every log line into a formatting error.
+    escaped = name.replace("%", "%%")
     logging.basicConfig(level=level.upper(), stream=sys.stderr,
-                        format=f"%(asctime)s {name} %(levelname)s %(name)s: %(message)s")
+                        format=f"%(asctime)s {escaped} %(levelname)s %(name)s: %(message)s")
 
 
 def bind(sock: zmq.Socket, address: str, key: str) -> None:

@@ -59,13 +59,26 @@ class Sink:
 
 
 def test_every_kind_is_registered_once_and_valid_in_config():
-    assert set(ENGINES) == set(ENGINE_KINDS) == set(KINDS)
+    assert set(ENGINES) | {"auto"} == set(ENGINE_KINDS) == set(KINDS) | {"auto"}
     for kind in KINDS:
         assert engine_class(kind).__name__.endswith("Engine")
         cfg = config_from_dict({"models": [{"name": "t", "arch": "toy"}],
                                 "executors": [{"name": "e", "models": ["t"]}],
                                 "engine": {"kind": kind, **NEEDS.get(kind, {})}})
         assert cfg.engine.kind == kind
+
+
+def test_the_default_engine_is_robion_on_a_gpu_and_monolithic_on_the_cpu():
+    """The default was the Monolithic baseline everywhere: a GPU cluster whose config left engine.kind out ran
+    none of the lockstep engine this system is built around."""
+    from services.executor.engine import MonolithicEngine, resolve_kind
+
+    cfg = config_from_dict({"models": [{"name": "t", "arch": "toy"}], "executors": [{"name": "e", "models": ["t"]}]})
+    assert cfg.engine.kind == "auto"
+    assert resolve_kind("auto", torch.device("cuda:0")) == "robion" and resolve_kind("auto", CPU) == "monolithic"
+    assert resolve_kind("disjoint", torch.device("cuda:0")) == "disjoint" and resolve_kind("robion", CPU) == "robion"
+    eng = make_engine({"t": ServedModel("t", build_model("toy", "tiny", seed=0), 1.0)}, cfg.engine, CPU, lambda r: None)
+    assert type(eng) is MonolithicEngine
 
 
 @pytest.mark.parametrize("engine, message", [

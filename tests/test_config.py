@@ -82,6 +82,12 @@ def test_defaults():
     (lambda d: d["models"][0].update(slo_ms=10 ** 400), "models[0].slo_ms: expected a positive number"),
     (lambda d: d["models"][0].update(hz=-10 ** 400), "models[0].hz: expected a positive number"),
     (lambda d: d.update(control={"limits": {"target": 10 ** 400}}), "control.limits.target: expected a share"),
+    # an executor's name is its ZeroMQ identity: the executor died binding its sockets (ZMQError traceback)
+    (lambda d: d["executors"][0].update(name="x" * 256), "executors[0].name: expected at most 255 bytes"),
+    (lambda d: d["executors"][0].update(name="é" * 128), "executors[0].name: expected at most 255 bytes"),
+    (lambda d: d["executors"][0].update(name="\0ex"), "executors[0].name: expected at most 255 bytes"),
+    # twice the limit overflowed a C long in the sockets' frame limit (OverflowError traceback)
+    (lambda d: d.update(router={"max_message_bytes": 2 ** 62}), "router.max_message_bytes: expected a positive"),
 ])
 def test_errors_name_their_path(mutate, message):
     data = base()

@@ -51,8 +51,9 @@ def test_new_weights_that_cannot_be_loaded_fail_their_steps(tmp_path):
     new = yaml.safe_load(path.read_text())
     new["models"][0]["weights"] = str(tmp_path / "missing.safetensors")
     with LocalCluster(cfg, path, log_level="WARNING"):
-        status = apply_and_wait(cfg.control.bind, new, ["ex0", "ex1"])
-        assert status["rollout"]["failed"] == ["ex0", "ex1"] and status["rollout"]["done"] == [], status["rollout"]
+        # ex1 first: while it reloads ex0 serves toy-a; ex0 is toy-b's only host whenever it goes.
+        status = apply_and_wait(cfg.control.bind, new, ["ex1", "ex0"])
+        assert status["rollout"]["failed"] == ["ex1", "ex0"] and status["rollout"]["done"] == [], status["rollout"]
         assert not status["executors"]["ex0"]["draining"] and not status["executors"]["ex1"]["draining"]
         assert status["table"]["routes"]["toy-a"] == ["ex0", "ex1"]
 
@@ -85,6 +86,8 @@ def test_a_population_change_reloads_no_executor(tmp_path):
         new["models"][1]["slo_ms"] = 400
         reply = control_request(cfg.control.bind, "apply", timeout_s=30, config=yaml.safe_dump(new))
         assert reply is not None and reply["kind"] == "applied" and reply["steps"] == ["ex0"], reply
+        # ex0 is toy-b's only host: the answer names it as the model without a host during that reload.
+        assert reply["unhosted"] == {"ex0": ["toy-b"]}, reply
 
 
 def test_an_executor_restarted_after_an_apply_is_brought_to_the_applied_state(tmp_path):

@@ -174,9 +174,33 @@ def test_departed_replicas_leave_no_metric_series(tmp_path):
             return {tuple(s.labels.values()): s.value for m in plane.metrics.registry.collect() if m.name == metric
                     for s in m.samples}
 
-        assert samples("robion_executor_up") == {("ex0",): 0.0}  # configured: still there, down
-        assert samples("robion_robots_assigned") == {("toy-a", "ex0"): 0.0}
-        assert plane._published == {"ex0"}
+        # configured: still there, down (ex1 never registered)
+        assert samples("robion_executor_up") == {("ex0",): 0.0, ("ex1",): 0.0}
+        assert samples("robion_robots_assigned") == {("toy-a", "ex0"): 0.0, ("toy-a", "ex1"): 0.0}
+        assert plane._published == {"ex0", "ex1"}
+    finally:
+        plane.sock.close(0)
+
+
+def test_a_configured_executor_that_never_registered_reads_down(tmp_path):
+    """Series were made only for executors that had registered with this control plane: one down since before
+    a restart of the plane (or never started) had no robion_executor_up series, so an alert on == 0 never fired."""
+    from services.controlplane.server import ControlPlane
+    from shared.config import load_config
+    from shared.protocol import ModelInfo
+
+    path, data = cluster_config(tmp_path, models=models({"robots": 4, "limit": 4}, {}))
+    data["control"]["metrics_port"] = 0
+    path.write_text(yaml.safe_dump(data))
+    plane = ControlPlane(load_config(path))
+    try:
+        plane.state.register("ex0", "cpu", {"toy-a": ModelInfo.from_wire(INFO)}, instance="x")
+        plane._update_metrics()
+        registry = plane.metrics.registry
+        assert registry.get_sample_value("robion_executor_up", {"executor": "ex0"}) == 1.0
+        assert registry.get_sample_value("robion_executor_up", {"executor": "ex1"}) == 0.0
+        assert registry.get_sample_value("robion_robots_assigned", {"model": "toy-a", "gpu": "ex0"}) == 4.0
+        assert registry.get_sample_value("robion_robots_assigned", {"model": "toy-a", "gpu": "ex1"}) == 0.0
     finally:
         plane.sock.close(0)
 
@@ -240,3 +264,27 @@ def test_re_solving_an_unchanged_cluster_moves_no_robot(monkeypatch):
     cfg, placement = _full_placement_config([27, 16, 16, 9, 32, 22, 22, 12], [20, 10, 9, 5, 15, 8, 7, 3], 4)
     tables = {json.dumps(assign(cfg, placement).robots, sort_keys=True) for _ in range(4)}
     assert len(tables) == 1, tables
+
+
+def test_the_control_plane_plans_what_robion_plan_prints_for_its_config():
+    """Where plans tie, the GPU numbering decides. The control plane numbered GPUs in the order executors
+    appeared in its routes, model by model, and `robion plan` in config order: for this config the plane
+    put A's robots on ex2 and `robion plan` on ex1, though the docs say both print the same assignment."""
+    from services.controlplane.planning import problem_from_cluster
+    from services.controlplane.solver import solve
+    from services.controlplane.state import ClusterState
+    from shared.config import config_from_dict
+    from shared.protocol import ModelInfo
+
+    cfg = config_from_dict({
+        "models": [{"name": "A", "arch": "toy", "robots": 2, "limit": 4}, {"name": "B", "arch": "toy"}],
+        "executors": [{"name": "ex0", "models": ["B"]}, {"name": "ex1", "models": ["A"]},
+                      {"name": "ex2", "models": ["A", "B"]}]})
+    st = ClusterState(cfg)
+    info = ModelInfo.from_wire(INFO)
+    for ex in cfg.executors:
+        st.register(ex.name, "cpu", {m: info for m in ex.models}, instance=ex.name)
+    plan = solve(problem_from_cluster(cfg), cfg.control.strategy, time_limit_s=cfg.control.solve_time_limit_s)
+    names = [e.name for e in cfg.executors]
+    printed = {m: {names[j]: n for j, n in per_gpu.items() if n} for m, per_gpu in plan.assignment.items()}
+    assert st.table.quotas == printed == {"A": {"ex1": 2}}, (st.table.quotas, printed)

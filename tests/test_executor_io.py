@@ -264,15 +264,55 @@ def test_a_result_that_cannot_be_encoded_is_answered_internal_and_the_loop_goes_
                      state=np.zeros(io.state_dim, np.float32), tokens=np.zeros(io.prompt_len, np.int64),
                      arrival=now, deadline=now + 1.0, envelope=b"robot-0")
     unencodable = Request(**{**broken.__dict__, "id": "unencodable"})
-    h.io.on_results([Result(broken), Result(unencodable, actions=object())])  # as a faulty batch would
-    h.wait_replies(["broken", "unencodable"], timeout_s=10)
+    # A finite but extreme state can overflow inside a model: its NaN actions were sent as an ok reply.
+    nan = Request(**{**broken.__dict__, "id": "nan"})
+    actions = np.zeros((io.horizon, io.action_dim), np.float32)
+    actions[0, 0] = np.nan
+    h.io.on_results([Result(broken), Result(unencodable, actions=object()), Result(nan, actions=actions)])
+    h.wait_replies(["broken", "unencodable", "nan"], timeout_s=10)
     assert h.replies["broken"].code == ErrorCode.INTERNAL
     assert h.replies["unencodable"].code == ErrorCode.INTERNAL
-    assert _sample(h, "robion_requests_total", model="toy-a", status="internal") == 2  # counted as what was sent
+    assert h.replies["nan"].code == ErrorCode.INTERNAL and "non-finite" in h.replies["nan"].message
+    assert _sample(h, "robion_requests_total", model="toy-a", status="internal") == 3  # counted as what was sent
     h.send(h.request("after"))
     h.wait_replies(["after"], timeout_s=30)
     assert getattr(h.replies["after"], "actions", None) is not None
     assert h.thread.is_alive()
+
+
+def test_an_executor_whose_engine_fails_every_batch_leaves(harness):
+    """A sticky device fault (on a GPU, an illegal memory access fails every later launch) made every batch fail:
+    the executor answered its whole share of the fleet INTERNAL while it heartbeated as healthy, so routing kept
+    sending it traffic. After FAILED_IN_ROW_FATAL failed requests in a row it now ends its I/O loop (main then
+    withdraws and exits 1 for a supervisor to restart it). One failed batch among good ones does not."""
+    from services.executor.transport import ExecutorIO
+
+    h = harness(engine={"kind": "robion", "max_batch": 2})
+    stage = h.io.slot.engine.stages["toy-a"]
+    healthy = stage.model.action_stage
+
+    def faulted(*args, **kwargs):
+        raise RuntimeError("CUDA error: an illegal memory access was encountered")
+
+    stage.model.action_stage = faulted
+    h.send(h.request("once"))
+    h.wait_replies(["once"], timeout_s=30)
+    stage.model.action_stage = healthy
+    h.send(h.request("after"))
+    h.wait_replies(["after"], timeout_s=30)
+    assert h.replies["once"].code == ErrorCode.INTERNAL and getattr(h.replies["after"], "actions", None) is not None
+    assert h.thread.is_alive() and not h.io.fatal.is_set()
+
+    stage.model.action_stage = faulted  # now for good
+    ids = [f"q{i}" for i in range(ExecutorIO.FAILED_IN_ROW_FATAL)]
+    for rid in ids:
+        h.send(h.request(rid))
+        time.sleep(0.01)
+    h.wait_replies(ids, timeout_s=60)
+    assert {h.replies[rid].code for rid in ids} == {ErrorCode.INTERNAL}  # every request still answered
+    h.thread.join(10)
+    assert not h.thread.is_alive() and h.io.fatal.is_set()
+    assert "in a row" in h.io.fatal_reason
 
 
 def test_an_executor_that_cannot_load_any_models_after_a_failed_reload_leaves(harness, tmp_path):

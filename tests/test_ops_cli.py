@@ -161,3 +161,73 @@ def test_ctrl_c_at_a_terminal_stops_the_services_in_order(tmp_path):
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+
+
+def test_ctl_waits_out_the_traffic_solve_a_drain_runs_before_its_answer(tmp_path):
+    """The control plane re-solves the traffic plan before it answers a drain, for up to
+    control.solve_time_limit_s. `robion ctl` waited a fixed 5 s, so with a longer limit it reported
+    "does not answer" and exit 1 for a drain that had taken effect. A stand-in plane answers after 6.5 s."""
+    import threading
+    import time
+
+    import zmq
+
+    from shared import control
+
+    path, data = cluster_config(tmp_path)
+    data["control"]["solve_time_limit_s"] = 8
+    path.write_text(yaml.safe_dump(data))
+    ctx = zmq.Context()
+    plane = ctx.socket(zmq.ROUTER)
+    plane.setsockopt(zmq.LINGER, 0)
+    plane.bind(data["control"]["bind"])
+    asked: list[dict] = []
+
+    def answer_late() -> None:
+        if plane.poll(60_000):
+            peer, frame = plane.recv_multipart()
+            asked.append(control.unpack(frame))
+            time.sleep(6.5)
+            plane.send_multipart([peer, control.pack("ok", version=3)])
+
+    t = threading.Thread(target=answer_late, daemon=True)
+    t.start()
+    try:
+        res = run("shared.cli", "ctl", "drain", "ex0", "-c", str(path))
+    finally:
+        t.join(10)
+        plane.close()
+        ctx.term()
+    assert asked and asked[0]["kind"] == "drain" and asked[0]["executor"] == "ex0", asked
+    assert res.returncode == 0, res.stderr
+    assert "drain ex0: routing table v3" in res.stdout, res.stdout
+
+
+def test_the_solve_limit_of_an_applied_file_is_read_without_a_full_check():
+    from shared.cli import applied_solve_limit
+
+    assert applied_solve_limit("control: {solve_time_limit_s: 20}\nmodels: []\n") == 20.0
+    assert applied_solve_limit("models: []\n") == 0.0
+    assert applied_solve_limit("control: {solve_time_limit_s: true}") == 0.0
+    assert applied_solve_limit("[1, 2") == 0.0 and applied_solve_limit("- a\n- b\n") == 0.0
+
+
+def test_ctl_takes_its_options_between_the_action_and_its_target(tmp_path):
+    """`robion ctl apply --no-wait new.yaml` exited 2 with "unrecognized arguments: new.yaml"."""
+    path, _ = cluster_config(tmp_path)
+    binary = tmp_path / "new.yaml"
+    binary.write_bytes(b"\x80\xd0\xff")
+    res = run("shared.cli", "ctl", "apply", "--no-wait", "--timeout", "5", str(binary), "-c", str(path))
+    assert res.returncode == 2 and "robion ctl apply: cannot read" in res.stderr, res.stderr  # the file was taken
+    res = run("shared.cli", "ctl", "drain", "-c", str(path), "ex0", "ex1")
+    assert res.returncode == 2 and "unrecognized arguments: ex0 ex1" in res.stderr, res.stderr
+
+
+def test_a_percent_sign_in_a_service_name_keeps_its_log_readable():
+    """The service name goes into a %-style log format: an executor named `gpu%1` logged nothing but
+    "--- Logging error ---" tracebacks."""
+    code = ("import logging; from shared.service import setup_logging; setup_logging('executor[gpu%1]', 'INFO'); "
+            "logging.getLogger('robion.executor').info('serving %s', 'pi0')")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert "Logging error" not in res.stderr, res.stderr
+    assert "executor[gpu%1] INFO robion.executor: serving pi0" in res.stderr, res.stderr

@@ -288,3 +288,19 @@ executors:
     assert table.returncode == 0 and "B " not in table.stdout and "C " not in table.stdout
     nothing = run_plan(tmp_path, cluster.replace("robots: 6, limit: 4", "robots: 0"))
     assert nothing.returncode == 0 and "nothing to assign" in nothing.stdout
+
+
+def test_a_cluster_config_with_imports_beside_it_is_planned(tmp_path: Path) -> None:
+    """Every service imports a config's `imports` from the config's folder; `robion plan` looked for them only on
+    its own path, so planning a cluster that serves a user's architecture failed with a config error."""
+    import yaml
+
+    from tests.test_user_model import docs_example
+
+    (tmp_path / "my_vla_plan.py").write_text(docs_example())
+    text = yaml.safe_dump({"imports": ["my_vla_plan"],
+                           "models": [{"name": "mine", "arch": "my_vla", "size": "tiny", "robots": 3, "limit": 4}],
+                           "executors": [{"name": "ex0", "models": ["mine"]}, {"name": "ex1", "models": ["mine"]}]})
+    out = run_plan(tmp_path, text, "--json")
+    assert out.returncode == 0, out.stderr
+    assert sum(json.loads(out.stdout)["assignment"]["mine"].values()) == 3

@@ -30,7 +30,7 @@ def test_start_up_settings_are_named():
               control={"heartbeat_s": 1.0, "limits": {"target": 0.95}},
               executors=[{"name": "ex0", "models": ["a"], "device": "cuda:0"}, {"name": "ex1", "models": ["b"]}])
     assert restart_only_changes(old, new) == [
-        "engine.kind: 'monolithic' -> 'robion'", "engine.max_batch: 2 -> 4", "router.request_timeout_s: 30.0 -> 5.0",
+        "engine.kind: 'auto' -> 'robion'", "engine.max_batch: 2 -> 4", "router.request_timeout_s: 30.0 -> 5.0",
         "control.heartbeat_s: 0.5 -> 1.0", "control.limits.target: 0.98 -> 0.95", "executors.ex0.device: 'cpu' -> 'cuda:0'"]
 
 
@@ -255,3 +255,45 @@ def test_a_reload_is_judged_by_its_outcome_not_by_the_model_names():
         ro.on_register(st, "ex0", ["a"], {"id": loads[0], "ok": ok, **({} if ok else {"error": "bad weights"})})
         assert ro.finished and not st.executors["ex0"].draining
         assert (ro.done_steps, ro.failed) == ((["ex0"], []) if ok else ([], ["ex0"]))
+
+
+def _serving(placement: dict[str, list[str]]):
+    from services.controlplane.state import ClusterState
+
+    models = sorted({m for ms in placement.values() for m in ms})
+    c = config_from_dict({"models": [{"name": m, "arch": "pi0"} for m in models],
+                          "executors": [{"name": n, "models": ms} for n, ms in placement.items()]})
+    st = ClusterState(c)
+    for name, ms in placement.items():
+        st.register(name, "cpu", {m: _info() for m in ms}, now=0.0, instance=f"{name}-1")
+    return c, st
+
+
+def _applied(c, placement: dict[str, list[str]]):
+    data = {"models": [{"name": m.name, "arch": m.arch} for m in c.models],
+            "executors": [{"name": n, "models": ms} for n, ms in placement.items()]}
+    return config_from_dict(data)
+
+
+def test_an_executor_that_is_a_models_only_host_reloads_after_another_serves_it():
+    """a moves from ex0 to ex1 while ex2 changes too. By gains alone ex0 (which gains b) went first and drained
+    a's only host: every request for a was answered UNAVAILABLE for the whole reload."""
+    from services.controlplane.rollout import plan_steps
+
+    c, st = _serving({"ex0": ["a"], "ex1": ["c"], "ex2": ["b", "c"]})
+    new = _applied(c, {"ex0": ["b"], "ex1": ["a", "c"], "ex2": ["c"]})
+    steps = plan_steps(c, new, st)
+    assert [s.executor for s in steps] == ["ex1", "ex0", "ex2"]
+    assert [s.unhosted for s in steps] == [[], [], []]
+
+
+def test_a_swap_names_the_models_it_leaves_without_a_host():
+    from services.controlplane.rollout import plan_steps
+
+    c, st = _serving({"ex0": ["a"], "ex1": ["b"]})
+    steps = plan_steps(c, _applied(c, {"ex0": ["b"], "ex1": ["a"]}), st)
+    assert [(s.executor, s.unhosted) for s in steps] == [("ex0", ["a"]), ("ex1", [])]
+    # With a third host of a, the swap keeps both models served.
+    c, st = _serving({"ex0": ["a"], "ex1": ["b"], "ex2": ["a"]})
+    steps = plan_steps(c, _applied(c, {"ex0": ["b"], "ex1": ["a"], "ex2": ["a"]}), st)
+    assert [(s.executor, s.unhosted) for s in steps] == [("ex0", []), ("ex1", [])]

@@ -291,6 +291,22 @@ def test_router_counts_an_empty_route_as_served(tmp_path):
         assert ask(robot, infer_frames("b", model="toy-z")).code == ErrorCode.UNKNOWN_MODEL
 
 
+def test_router_without_a_table_counts_its_configured_models_as_served(tmp_path):
+    """A router that has no table yet (the control plane is starting, holding its first table back until the
+    executors register, or down since the router started) answered every configured model UNKNOWN_MODEL,
+    "never retry": robots of a cluster coming up gave up on models it was about to serve."""
+    with RouterThread(tmp_path) as rt:  # no control plane listens: the router never gets a table
+        robot = rt.robot(b"arm")
+        rep = ask(robot, infer_frames("a", model="toy-a"))
+        assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.UNAVAILABLE, rep
+        assert ask(robot, infer_frames("b", model="toy-b")).code == ErrorCode.UNAVAILABLE
+        assert ask(robot, infer_frames("c", model="toy-z")).code == ErrorCode.UNKNOWN_MODEL
+        assert rt.router.routing.table.version == 0
+        counted = rt.router.metrics.registry.get_sample_value(
+            "robion_router_requests_total", {"model": "toy-a", "status": "unavailable"})
+        assert counted == 1.0
+
+
 # ----------------------------------------------------------------------------- 3: frames per message
 
 

@@ -145,7 +145,8 @@ def load_planning_input(path: str | Path, headroom: float | None = None) -> Plan
     # `executors` key until it is expanded; a planning file never has `placement`.
     if isinstance(data, dict) and ("executors" in data or "placement" in data):
         try:
-            cfg = config_from_dict(data)
+            # `imports` name modules beside the config file, as for every service reading it (load_config).
+            cfg = config_from_dict(data, Path(path).resolve().parent)
             problem = with_headroom(problem_from_cluster(cfg), cfg.control.headroom if headroom is None else headroom)
         except ConfigError as e:
             raise PlanInputError("", str(e)) from None

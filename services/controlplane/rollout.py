@@ -2,8 +2,10 @@
 
 For each executor whose models change: take it out of routing (draining; its requests in
 flight are still answered), tell it to load the new model set, and put it back once it
-registers with that set. Executors that gain models go first, so a model moving between
-executors always has a host. The routing table switches atomically at each step.
+registers with that set. Executors that gain models go first, and a step whose executor is the
+only host of a model waits until another executor serves it, so a model moving between executors
+keeps a host; where no order allows that (a swap), the step names the models left without one.
+The routing table switches atomically at each step.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import logging
 import time
 import uuid
-from dataclasses import dataclass, fields, is_dataclass
+from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any, Callable
 
 from services.controlplane.state import ClusterState
@@ -35,6 +37,10 @@ class Step:
     # (or a new rate or deadline) from the old ones kept after a failed reload, nor the registration of a
     # reload that failed from one the executor sends because it lost the control plane while reloading.
     load_id: str = ""
+    # Models no other executor serves while this one reloads: their requests are answered UNAVAILABLE meanwhile
+    # (a swap between two executors, a new setting of a model with a single host). plan_steps orders the
+    # steps so that this is empty wherever an order allows it.
+    unhosted: list[str] = field(default_factory=list)
 
 
 # Settings `apply` changes live: the models (placement, populations, rates, limits, weights),
@@ -95,7 +101,25 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
             continue
         added, removed = len(set(wanted) - current), len(current - set(wanted))
         steps.append((-added, removed, Step(name, [new.model(m) for m in wanted])))
-    return [s for _, _, s in sorted(steps, key=lambda t: (t[0], t[1], t[2].executor))]
+    pending = [s for _, _, s in sorted(steps, key=lambda t: (t[0], t[1], t[2].executor))]
+    # A step drains its executor for the whole reload. Each next step is the first (gainers first) whose
+    # executor's models all have another serving host at that point; only where none has (a swap of two
+    # single-hosted models) does a model go without a host, and the step names it.
+    serving = {name: set(ex.models) for name, ex in state.executors.items() if not state.routed_nothing_new(name)}
+
+    def unhosted(step: Step) -> list[str]:
+        others = set().union(*(ms for n, ms in serving.items() if n != step.executor))
+        return sorted(serving.get(step.executor, set()) - others)
+
+    ordered: list[Step] = []
+    while pending:
+        step = next((s for s in pending if not unhosted(s)), pending[0])
+        step.unhosted = unhosted(step)
+        pending.remove(step)
+        if step.executor in serving:
+            serving[step.executor] = {m.name for m in step.models}
+        ordered.append(step)
+    return ordered
 
 
 def _drain(state: ClusterState, step: Step) -> None:

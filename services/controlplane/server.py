@@ -117,10 +117,13 @@ class ControlPlane:
         # A configured executor that is down reads 0. A replica outside the config registers under a name of
         # its own (docker-compose: its container's), new with every scale-out or redeploy: its series go once
         # it has left, or they would pile up in this process and in Prometheus for good.
+        # A configured executor that never registered with this process (down since before a restart, never
+        # started) reads 0 too: an alert on executor_up == 0 must see it.
         configured = {e.name for e in self.state.cfg.executors}
-        for name in self._published - live:
+        for name in (self._published | configured) - live:
             if name in configured:
                 self.metrics.executor_up.labels(name).set(0)
+                self._published.add(name)
             else:
                 self.metrics.executor_up.remove(name)
                 self._published.discard(name)
@@ -133,7 +136,9 @@ class ControlPlane:
             for ex, n in per.items():
                 self.metrics.robots_assigned.labels(model, ex).set(n)
         published = {(m, e) for m, per in quotas.items() for e in per}
-        for model, ex in self._assigned - published:
+        populated = {m.name for m in self.state.cfg.models if m.robots > 0}
+        placed = {(m, e.name) for e in self.state.cfg.executors for m in e.models if m in populated}
+        for model, ex in (self._assigned | placed) - published:
             if ex in configured:
                 self.metrics.robots_assigned.labels(model, ex).set(0)
                 published.add((model, ex))  # kept (at 0) until the config drops the executor
@@ -227,7 +232,12 @@ class ControlPlane:
             self.rollout = Rollout(steps)
             log.info("apply: new desired state, table v%d; executors to reload: %s", st.table.version,
                      [s.executor for s in steps])
-            return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version)
+            unhosted = {s.executor: s.unhosted for s in steps if s.unhosted}
+            for name, models in unhosted.items():
+                log.warning("apply: while %s reloads no other executor serves %s: their requests are answered "
+                            "UNAVAILABLE until it is back", name, models)
+            return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version,
+                               unhosted=unhosted)
         name = _name(msg, "executor")
         if kind == "drain" and peer == name.encode():
             # The executor drains itself as it shuts down (ExecutorIO.withdraw; its control socket's identity

@@ -230,11 +230,12 @@ class ClusterState:
         executors = sorted(self.executors)
         if not force and (models, routes, executors) == (self.table.models, self.table.routes, self.table.executors):
             return
-        # A new placement is a new solve: robots keep their executor only until then.
-        placement: dict[str, list[str]] = {}
-        for model, execs in routes.items():
-            for e in execs:
-                placement.setdefault(e, []).append(model)
+        # A new placement is a new solve: robots keep their executor only until then. GPUs are numbered in config
+        # order, then replicas outside it, as `robion plan` numbers them: where plans tie, both pick the same one.
+        configured = {e.name: None for e in self.cfg.executors}
+        order = list(configured) + [n for n in self.executors if n not in configured]
+        placement = {e: [m for m, execs in routes.items() if e in execs] for e in order}
+        placement = {e: models_of for e, models_of in placement.items() if models_of}
         self.quotas = assign(self.cfg, placement, self.measured_limits)
         self.table = RoutingTable(version=self.table.version + 1, models=models, routes=routes,
                                   quotas=self.quotas.robots, limits=self.quotas.limits, executors=executors)

@@ -235,7 +235,7 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-# The one list of engine kinds (shared/config.ENGINE_KINDS mirrors its keys). A kind is its
+# The one list of engine kinds (shared/config.ENGINE_KINDS mirrors its keys, and adds "auto": resolve_kind). A kind is its
 # class, or "module:Class" for engines built on this module (imported on first use: they
 # import this module, so they cannot be imported here).
 ENGINES: dict[str, type[Engine] | str] = {
@@ -247,6 +247,15 @@ ENGINES: dict[str, type[Engine] | str] = {
     "procdisagg": "services.executor.baselines.procdisagg:ProcDisaggEngine",
     "interdisagg": "services.executor.baselines.interdisagg:InterDisaggEngine",
 }
+
+
+def resolve_kind(kind: str, device: torch.device) -> str:
+    """The engine ``engine.kind`` runs on ``device``. ``auto`` (the default): robion on a GPU; monolithic on the
+    CPU, which runs the two stages one after the other whatever the engine, so a lockstep there only makes each
+    request wait for the next lockstep's action stage."""
+    if kind != "auto":
+        return kind
+    return "robion" if device.type == "cuda" else "monolithic"
 
 
 def engine_class(kind: str) -> type[Engine]:
@@ -265,4 +274,4 @@ def engine_class(kind: str) -> type[Engine]:
 
 
 def make_engine(models: dict[str, ServedModel], cfg: EngineConfig, device: torch.device, on_results: ResultSink) -> Engine:
-    return engine_class(cfg.kind)(models, cfg, device, on_results)
+    return engine_class(resolve_kind(cfg.kind, device))(models, cfg, device, on_results)

@@ -11,6 +11,7 @@ measure in parallel and nothing is measured twice.
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import json
 import logging
 import threading
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from services.executor.engine import ServedModel, make_engine
+from services.executor.engine import ServedModel, make_engine, resolve_kind
 from services.executor.simulation import SearchCancelled, SimConfig, find_capacity
 from shared.config import ClusterConfig, ModelConfig
 from shared.files import write_atomic
@@ -54,10 +55,24 @@ class LimitCache:
             return {}
         return data
 
-    def write(self, key: str, entry: dict) -> None:
-        data = self.read()
-        data[key] = entry
-        write_atomic(self.path, json.dumps(data, indent=2, sort_keys=True))
+    def write(self, key: str, entry: dict) -> bool:
+        """Add one entry; False (and a warning) when the file cannot be written: the limit still holds for this
+        process, and a state directory that is read-only or full must not end it after a search of minutes.
+
+        Executors on other GPUs write the same file: the read-modify-replace runs under an exclusive lock on a
+        file beside it, or two overlapping writes would each drop the other's new entries."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path.with_name(self.path.name + ".lock"), "a") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+                data = self.read()
+                data[key] = entry
+                write_atomic(self.path, json.dumps(data, indent=2, sort_keys=True))
+        except OSError as exc:
+            log.warning("could not write the robot limit cache %s (%s): the limit holds until this process ends",
+                        self.path, exc.strerror or exc)
+            return False
+        return True
 
 
 def cached_limit(entry: object) -> int | None:
@@ -102,7 +117,7 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
             continue
         served = models[name]
         key = limit_key(device_name(device), served.model.arch, mc.size, mc.hz, cfg.engine.max_batch, served.slo_s * 1e3,
-                        cfg.engine.kind, lc.target)
+                        resolve_kind(cfg.engine.kind, device), lc.target)
         if key in known:
             limit = cached_limit(known[key])
             if limit is not None:

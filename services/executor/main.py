@@ -7,6 +7,7 @@ import os
 
 import torch
 
+from services.executor.engine import resolve_kind
 from services.executor.hosting import EngineSlot, ModelStore
 from services.executor.limits import measure_limits
 from services.executor.transport import ExecutorIO
@@ -127,7 +128,8 @@ def main(argv: list[str] | None = None) -> int:
             # anything here; registering now only to withdraw at once would make it plan twice for nothing.
             log.info("stopped during start-up")
         else:
-            log.info("serving %s with the %s engine (ready in %.1f s)", sorted(hosted.models), cfg.engine.kind, took)
+            log.info("serving %s with the %s engine (ready in %.1f s)", sorted(hosted.models),
+                     resolve_kind(cfg.engine.kind, device), took)
             transport.run(stop)
             # Out of routing first, engine second: stopping the engine while the router still
             # routes here would fail requests a healthy replica could serve.
@@ -137,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
         transport.drain()
         transport.close()
     if transport.fatal.is_set():
-        log.error("stopped: no models could be loaded after a failed reload (%s)", transport.stats)
+        log.error("stopped: %s (%s)", transport.fatal_reason, transport.stats)
         return 1  # a supervisor (docker-compose's restart policy) starts it again
     log.info("stopped: %s", transport.stats)
     return 0

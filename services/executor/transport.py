@@ -64,12 +64,20 @@ def to_request(msg: InferRequest, served: ServedInput, envelope: bytes, arrival:
 def reply_frames(res: Result, now: float) -> list:
     """The reply to ``res``. A result the engine got wrong (neither actions nor an error, or actions
     that cannot be encoded) is answered INTERNAL, and ``res.error`` says so for the metrics: never
-    an ok reply without actions, and never an exception that would end the I/O loop."""
+    an ok reply without actions, and never an exception that would end the I/O loop.
+
+    Actions with NaN or infinity (a finite but extreme state overflowing inside the model, a weight
+    gone bad) are answered INTERNAL too: a robot must never be handed them as a normal reply."""
     r = res.request
     if res.error is None:
         try:
             if res.actions is None:
                 raise ValueError("a result with neither actions nor an error")
+            if not np.isfinite(res.actions).all():
+                log.error("request %r of %s: the model produced NaN or infinite actions; answering INTERNAL",
+                          r.id, r.model)
+                res.error = (ErrorCode.INTERNAL, "the model produced non-finite actions")
+                return error_frames(r.id, *res.error)
             timings = Timings(queue_ms=max(0.0, res.admitted - r.arrival) * 1e3, vlm_ms=res.vlm_s * 1e3,
                               action_ms=res.action_s * 1e3, server_ms=(now - r.arrival) * 1e3)
             return encode(InferReply(id=r.id, model=r.model, actions=res.actions, timings=timings))
@@ -86,6 +94,11 @@ class ExecutorIO:
     # and how long no request may arrive before the engine is stopped.
     WITHDRAW_REPLY_S = 1.0
     WITHDRAW_ACK_S = 3.0
+    # Requests the engine failed in a row (INTERNAL from a failed batch, none answered with actions between them)
+    # after which the device is taken to be in a sticky fault (on a GPU, e.g. an illegal memory access fails
+    # every later launch): the executor leaves routing and exits 1 for its supervisor to restart it, instead of
+    # heartbeating as healthy while it answers its whole share of the fleet INTERNAL.
+    FAILED_IN_ROW_FATAL = 32
     WITHDRAW_ANSWER_S = 5.0
     WITHDRAW_QUIET_S = 0.25
 
@@ -112,7 +125,9 @@ class ExecutorIO:
         # reads from the registration after a reload whether the new models were loaded.
         self._load_outcome: dict | None = None
         self._reregister = threading.Event()
-        self.fatal = threading.Event()  # serving cannot go on (a reload and its fallback failed)
+        self.fatal = threading.Event()  # serving cannot go on (a reload and its fallback failed, a sticky fault)
+        self.fatal_reason = ""
+        self._failed_in_row = 0  # requests the engine failed since it last answered one with actions
         self._poller: zmq.Poller | None = None
         self._last_beat = 0.0
         self._leaving = False  # withdraw() has begun: no re-registration, no reloads
@@ -373,6 +388,7 @@ class ExecutorIO:
                 # again. Leave instead, so routing drops it and a supervisor restarts it.
                 log.critical("loading the previous models %s failed too; leaving", [mc.name for mc in previous],
                              exc_info=True)
+                self.fatal_reason = "no models could be loaded after a failed reload"
                 self.fatal.set()  # the I/O loop ends within one poll; main then withdraws and exits 1
                 return
         self.metrics.slo_s = {n: s.slo_s for n, s in hosted.inputs.items()}
@@ -473,6 +489,19 @@ class ExecutorIO:
             if rec.vlm_batch:
                 self.metrics.sm_level.set(rec.sm_level if rec.sm_level is not None else self._sm_count)
 
+    def _count_failure(self, res: Result) -> None:
+        """Track the engine's failed requests in a row (before reply_frames, whose own INTERNAL answers, such as
+        non-finite actions a robot's input can cause, are no device fault); past FAILED_IN_ROW_FATAL, leave."""
+        if res.error is None:
+            self._failed_in_row = 0
+        elif res.error[0] == ErrorCode.INTERNAL:
+            self._failed_in_row += 1
+            if self._failed_in_row >= self.FAILED_IN_ROW_FATAL and not self.fatal.is_set():
+                log.critical("the engine failed %d requests in a row and answered none: the device looks "
+                             "faulted; leaving routing and exiting for a restart", self._failed_in_row)
+                self.fatal_reason = f"the engine failed {self._failed_in_row} requests in a row"
+                self.fatal.set()
+
     def _send_results(self) -> bool:
         self._flush_unsent()
         sent = False
@@ -485,6 +514,7 @@ class ExecutorIO:
             batches: dict[tuple[str, float], int] = {}
             for res in batch:
                 r = res.request
+                self._count_failure(res)
                 self._send_reply([r.envelope, *reply_frames(res, now)])
                 self.in_flight -= 1
                 sent = True

@@ -68,6 +68,7 @@ class Router:
         self.cfg = cfg
         self.ctx = context or zmq.Context.instance()
         self.routing = Routing()
+        self._configured = frozenset(m.name for m in cfg.models)
         self.in_flight: dict[FlightKey, InFlight] = {}
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
         self.metrics = RouterMetrics()
@@ -190,8 +191,14 @@ class Router:
     def _reply_error(self, robot: bytes, rid: RequestId, code: ErrorCode, message: str, model: str = "") -> None:
         self.stats["errors"] += 1
         # Only served model names become label values: robots cannot grow the series count.
-        self.metrics.requests.labels(model if self.routing.knows(model) else "", code.value.lower()).inc()
+        self.metrics.requests.labels(model if self._serves(model) else "", code.value.lower()).inc()
         self.frontend.send_multipart([robot, *error_frames(rid, code, message)], copy=False)
+
+    def _serves(self, model: str) -> bool:
+        """A model of the cluster: one the routing table lists, or, before any table has come (the control plane
+        is starting, holding its first table back, or down since this router started), one of this router's own
+        config. Those are unavailable for now ("retry"), not unknown ("never retry")."""
+        return self.routing.knows(model) or (self.routing.table.version == 0 and model in self._configured)
 
     def _from_robot(self, frames: list[zmq.Frame]) -> None:
         robot = frames[0].bytes
@@ -235,7 +242,7 @@ class Router:
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, "model: expected str")
         if rid == "":
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, "id: expected a non-empty str or int")
-        if not self.routing.knows(model):
+        if not self._serves(model):
             return self._reply_error(robot, rid, ErrorCode.UNKNOWN_MODEL, f"model {model!r} is not served")
         key = flight_key(robot, rid)
         if key in self.in_flight:
