@@ -280,6 +280,44 @@ def test_a_result_that_cannot_be_encoded_is_answered_internal_and_the_loop_goes_
     assert h.thread.is_alive()
 
 
+def test_a_shutdown_waits_for_a_drain_answered_after_the_traffic_solve(harness, caplog):
+    """The control plane re-solves the traffic plan before it answers an executor's drain (up to
+    control.solve_time_limit_s, 5 s by default). A leaving executor waited 1 s for that answer, then left
+    without waiting for the router to switch tables: requests routed to it meanwhile were answered
+    UNAVAILABLE. Here the stand-in plane answers after 1.5 s, within a 2 s solve limit."""
+    import logging
+
+    h = harness(control_plane=True, control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.2,
+                                             "solve_time_limit_s": 2, "metrics_port": 0})
+    h.stop.set()
+    h.thread.join(10)
+    done = threading.Event()
+
+    def leave() -> None:
+        h.io.withdraw(ack_timeout_s=3.0, answer_timeout_s=0.2)
+        done.set()
+
+    with caplog.at_level(logging.INFO, logger="robion.executor"):
+        threading.Thread(target=leave, daemon=True).start()
+        drained = None
+        end = time.monotonic() + 10
+        while drained is None and time.monotonic() < end:  # registration and heartbeats come first
+            assert h.control.poll(10_000)
+            peer, frame = h.control.recv_multipart()
+            if control.unpack(frame).get("kind") == "drain":
+                drained = peer
+        assert drained is not None, "the executor never sent its drain"
+        time.sleep(1.5)  # the solve
+        h.control.send_multipart([drained, control.pack("ok", version=7)])
+        while not done.is_set() and h.control.poll(3000):  # status polls: the router is on v7
+            peer, frame = h.control.recv_multipart()
+            if control.unpack(frame).get("kind") == "status":
+                h.control.send_multipart([peer, control.pack("status", status={"router": {"version": 7}})])
+        assert done.wait(10)
+    assert "withdrawn from routing (table v7)" in caplog.text, caplog.text
+    assert "did not answer our drain" not in caplog.text
+
+
 def test_an_executor_whose_engine_fails_every_batch_leaves(harness):
     """A sticky device fault (on a GPU, an illegal memory access fails every later launch) made every batch fail:
     the executor answered its whole share of the fleet INTERNAL while it heartbeated as healthy, so routing kept

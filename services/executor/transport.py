@@ -89,9 +89,9 @@ def reply_frames(res: Result, now: float) -> list:
 
 
 class ExecutorIO:
-    # withdraw(): wait for the drain's answer, for the router to fetch the new table, for the
-    # requests accepted to be answered (all bounded: a container gets ~10 s after SIGTERM),
-    # and how long no request may arrive before the engine is stopped.
+    # withdraw(): wait for the drain's answer (beyond the plane's traffic solve), for the router to fetch the
+    # new table, for the requests accepted to be answered (all bounded: docker-compose gives executors 30 s
+    # after SIGTERM, stop_grace_period), and how long no request may arrive before the engine is stopped.
     WITHDRAW_REPLY_S = 1.0
     WITHDRAW_ACK_S = 3.0
     # Requests the engine failed in a row (INTERNAL from a failed batch, none answered with actions between them)
@@ -312,7 +312,9 @@ class ExecutorIO:
         self._leaving = True
         self._ctl_replies.clear()
         self._ctl_send("drain", executor=self.name)
-        reply = self._ctl_reply(("ok", "error"), min(self.WITHDRAW_REPLY_S, ack_timeout_s))
+        # The control plane re-solves the traffic plan before it answers a drain, for up to its solve time limit.
+        solve_s = self.cfg.control.solve_time_limit_s
+        reply = self._ctl_reply(("ok", "error"), solve_s + min(self.WITHDRAW_REPLY_S, ack_timeout_s))
         if reply is None:
             log.warning("control plane did not answer our drain: leaving without waiting for the router")
         elif reply.get("kind") == "error":
