@@ -167,17 +167,50 @@ def test_kind_serves_mixed_batches_equal_to_eager(kind):
         eng.close()
 
 
-def test_procdisagg_merges_arrivals_into_running_batch_threads():
+def test_procdisagg_merges_arrivals_into_running_batch_threads(monkeypatch):
+    """The action worker checks for arrived handoffs at every denoising step and merges them into its running
+    batch. Each step is slowed by 30 ms here, and the second group is submitted once the first is denoising, so
+    its VLM stage ends while the first group still has steps to go: those requests must join the running batch
+    (merges, and steps whose rows are at different denoising steps)."""
+    from services.executor.baselines import stepping
+
+    real_step = stepping.Pi0Adapter.step
+    denoising = threading.Event()
+
+    def slow_step(self, S, n):
+        denoising.set()
+        time.sleep(0.03)
+        real_step(self, S, n)
+
+    monkeypatch.setattr(stepping.Pi0Adapter, "step", slow_step)
     m = build_model("pi0", "tiny", seed=1)
     rng = np.random.default_rng(1)
-    reqs = [make_req(m, "pi0", str(i), rng) for i in range(12)]
-    eng, sink = _serve("procdisagg", {"pi0": m}, reqs, procdisagg_workers="thread")
-    assert all(r.error is None for r in sink.results) and len(sink.results) == 12
+    reqs = [make_req(m, "pi0", str(i), rng) for i in range(8)]
+    sink = Sink()
+    eng = make_engine({"pi0": ServedModel("pi0", m, 5.0)},
+                      EngineConfig(kind="procdisagg", max_batch=4, procdisagg_workers="thread"), CPU, sink)
+    eng.prepare()
+    stop = threading.Event()
+    th = threading.Thread(target=eng.run, args=(stop,), daemon=True)
+    th.start()
+    try:
+        for r in reqs[:4]:
+            eng.submit(r)
+        assert denoising.wait(30)
+        for r in reqs[4:]:
+            eng.submit(r)
+        sink.wait(len(reqs))
+    finally:
+        stop.set()
+        th.join(30)
+    assert not th.is_alive()
+    assert all(r.error is None for r in sink.results) and len(sink.results) == 8
     recs = eng.telemetry.records()
-    assert sum(r.admitted for r in recs) == 12 and sum(r.finished for r in recs) == 12
+    assert sum(r.admitted for r in recs) == 8 and sum(r.finished for r in recs) == 8
     assert all(r.batch <= 16 for r in recs)
     s = eng.telemetry.summary()
     assert s["steps"] == len(recs)
+    assert s["merges"] > 0 and s["mixed_steps"] > 0, s
 
 
 @pytest.mark.parametrize("kind", KINDS)

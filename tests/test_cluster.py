@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from shared.client import RobionError, RobotClient, wait_any
-from shared.cluster import LocalCluster, control_status
+from shared.cluster import LocalCluster, control_request, control_status
 from shared.config import load_config
 from shared.protocol import ErrorCode
-from tests.helpers import cluster_config
+from tests.helpers import cluster_config, wait_for
 
 
 @pytest.fixture(scope="module")
@@ -133,10 +133,14 @@ def test_scaled_out_replica_joins_and_leaves(tmp_path):
             while time.monotonic() < end and control_status(cfg.control.bind)["table"]["routes"]["toy-b"] != ["ex0", "replica-9"]:
                 time.sleep(0.2)
             assert control_status(cfg.control.bind)["table"]["routes"]["toy-b"] == ["ex0", "replica-9"]
+            # With ex0 drained only the replica can answer: the requests show that it is routed to.
+            assert control_request(cfg.control.bind, "drain", timeout_s=10, executor="ex0")["kind"] == "ok"
+            assert wait_for(lambda: control_status(cfg.control.bind)["ready"], 10)  # the router has the table
             with RobotClient(cfg.router.bind) as client:
                 info = client.metadata()["toy-b"]
                 images, state = obs(info, np.random.default_rng(5))
                 assert all(client.infer("toy-b", images, state).ok for _ in range(6))
+            assert control_request(cfg.control.bind, "resume", timeout_s=10, executor="ex0")["kind"] == "ok"
         finally:
             extra.terminate()
             assert extra.wait(30) == 0

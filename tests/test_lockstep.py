@@ -827,3 +827,56 @@ def test_a_batch_failed_twice_is_answered_once(monkeypatch):
     got = {res.request.id: res for res in sink.results}
     assert got["0"].error[0] == ErrorCode.INTERNAL and got["1"].error[0] == ErrorCode.INTERNAL
     assert got["2"].error is None
+
+
+def test_a_reused_engine_does_not_count_the_pause_between_runs_as_a_gap():
+    """The capacity harness reuses an engine across epochs (run, finish, run again). A run stopped with a batch
+    in flight left the engine "back to back": the next run's first lockstep reported the whole pause between
+    the epochs as its host gap (cpu_gap_us), which then dominated the telemetry's p99."""
+    model = build_model("toy", "tiny", seed=1)
+    eng, _ = engine_for({"toy": (model, 60.0)})
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        eng.submit(dataclasses.replace(make_req(model, f"a{i}", rng), model="toy"))
+    eng.step()  # a batch past its VLM stage: finish() completes it
+    assert eng._pending is not None or eng._ahead is not None
+    eng.finish()
+    eng.telemetry.clear()
+    time.sleep(0.4)  # between epochs
+    eng.queues.reopen()  # as run() does
+    for i in range(2):
+        eng.submit(dataclasses.replace(make_req(model, f"b{i}", rng), model="toy"))
+    drive(eng)
+    gaps = [r.cpu_gap_us for r in eng.telemetry.records() if r.cpu_gap_us is not None]
+    assert gaps and max(gaps) < 200_000, gaps  # the pause was 400 ms
+
+
+def test_a_vlm_batch_that_fails_to_launch_fails_alone():
+    """Lockstep 1 runs r0's action stage beside r1's VLM stage. When staging r1 failed, r0 was answered
+    INTERNAL too, although its handoff and action stage had been issued and ran (without launch-ahead; with it,
+    only the VLM batch failed already)."""
+    model = build_model("toy", "tiny", seed=1)
+    eng, sink = engine_for({"toy": (model, 60.0)}, max_batch=1)
+    stages = eng.stages["toy"]
+    real_stage = stages.stage
+    calls = []
+
+    def stage(b, batch):
+        calls.append(b)
+        if len(calls) == 2:  # r1's VLM stage, beside r0's action stage
+            raise RuntimeError("injected staging fault")
+        return real_stage(b, batch)
+
+    stages.stage = stage
+    submit_n(eng, model, "toy", 3, np.random.default_rng(0))
+    for _ in range(50):
+        try:
+            if not eng.step() and eng._pending is None and eng._last is None and eng._ahead is None:
+                break
+        except RuntimeError:
+            pass
+    answers = {r.request.id: (r.error[0] if r.error else "actions") for r in sink.results}
+    assert answers == {"0": "actions", "1": ErrorCode.INTERNAL, "2": "actions"}, answers
+    for r in sink.results:
+        if r.error is None:
+            np.testing.assert_allclose(r.actions, eager(model, r.request), atol=1e-5)

@@ -116,7 +116,11 @@ def test_a_port_another_process_holds_is_named_and_exits_2(tmp_path):
 def test_a_stopped_demo_stops_its_fleet_and_cluster(tmp_path):
     """SIGTERM to `robion demo` left its fleet running against the stopped cluster, which then printed a report
     of requests nobody answered."""
-    import time
+    import os
+    import signal
+
+    from tests.helpers import wait_for
+    from tests.test_up import children_of_config
 
     path, data = cluster_config(tmp_path)
     data["fleet"]["duration_s"] = 60
@@ -128,14 +132,16 @@ def test_a_stopped_demo_stops_its_fleet_and_cluster(tmp_path):
         out, err = proc.communicate(timeout=30)
         assert proc.returncode != 0 and "SLO-AT" not in out, (out, err[-2000:])
         assert "Traceback" not in err, err[-2000:]
-        time.sleep(1.0)
-        left = subprocess.run(["pgrep", "-f", f"--parent-pid {proc.pid}"], capture_output=True, text=True).stdout
-        assert not left.strip(), f"processes of the demo still running: {left}"
+        # The fleet and every service carry the config path on their command lines. (`pgrep -f "--parent-pid N"`
+        # read the pattern as an option: it matched nothing whatever was left running.)
+        assert wait_for(lambda: not children_of_config(path), 5), \
+            f"processes of the demo still running: {children_of_config(path)}"
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-        subprocess.run(["pkill", "-f", f"--parent-pid {proc.pid}"])
+        for pid in children_of_config(path):
+            os.kill(pid, signal.SIGKILL)
 
 
 def test_ctrl_c_at_a_terminal_stops_the_services_in_order(tmp_path):

@@ -35,11 +35,14 @@ def test_strategies_experiment(tmp_path):
 
 
 def test_placements_experiment(tmp_path):
-    r = run(tmp_path, "placements", "--arch", "pi0", "--arch2", "xr0", "--robots", "4")
+    # One robot per variant (4 pi0 and 4 XR0 variants): with fewer, the XR0 variants got no robots and their
+    # side of the group check held whatever the placement.
+    r = run(tmp_path, "placements", "--arch", "pi0", "--arch2", "xr0", "--robots", "8")
     labels = [row["label"] for row in r["rows"]]
     assert labels == ["mix", "gr-1:1"]
     group = r["rows"][1]["assignment"]
-    assert all(set(per) <= {"0"} if m.startswith("pi0") else set(per) <= {"1"} for m, per in group.items())
+    assert len(group) == 8 and all(sum(per.values()) >= 1 for per in group.values()), group
+    assert all(set(per) == ({"0"} if m.startswith("pi0") else {"1"}) for m, per in group.items()), group
 
 
 def test_limits_from_cache_file_set_equal_populations(tmp_path):

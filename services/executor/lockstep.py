@@ -156,6 +156,7 @@ class CudaRunner:
         ev.last_end = None
         self._gate = self._ring[after % len(self._ring)] if after is not None else None
         self._act_gated = False
+        self._act_started = False  # act_start recorded: once per lockstep, before the handoff copy
 
     def _gate_action(self, s: torch.cuda.Stream) -> None:
         gate = self._gate
@@ -171,15 +172,19 @@ class CudaRunner:
         torch.cuda.set_stream(s)
         self._gate_action(s)
         ev.act_start.record(s)
+        self._act_started = True
         stages.handoff(b)
         ev.handoff.record(s)
 
     def launch_action(self, stages: BufferedStages, b: int, slot: int) -> None:
         ev, s = self._ev, self.action_stream
         torch.cuda.set_stream(s)
-        if not self._act_gated:  # launched without its handoff copy (not done by the engine)
+        # Launched without its handoff copy (not done by the engine). With a handoff, act_start was recorded before
+        # the copy, gated or not: a second record here left the copy out of ungated locksteps' action_ms.
+        if not self._act_started:
             self._gate_action(s)
             ev.act_start.record(s)
+            self._act_started = True
         stages.action(b, slot)
         ev.act_end.record(s)
         ev.has_act = True
@@ -192,7 +197,9 @@ class CudaRunner:
         if gate is not None:
             if gate.has_act:
                 s.wait_event(gate.act_end)
-            if gate.has_vlm and s is not self.vlm_stream:  # eager VLM on a green stream: another stream
+            # Eager VLMs run on the level's green stream or, unrestricted, on vlm_stream: the previous one may
+            # have run on another stream than this one, so wait for its end (on the same stream it is a no-op).
+            if gate.has_vlm and self.eager_vlm:
                 s.wait_event(gate.vlm_end)
         ev.vlm_start.record(s)
         if after_handoff:
@@ -326,6 +333,7 @@ class LockstepEngine(Engine):
         self.ahead_missed = 0  # locksteps that ended before the engine woke to launch the next one
         self.batch_sizes = batch_sizes(cfg.max_batch)
         self.sm_policy = sm_policy
+        self.table_path: Path | None = None  # the SM table file prepare() used or profiled into (table policy)
         self.telemetry = Telemetry(path=cfg.telemetry_file)
         self.stages: dict[str, BufferedStages] = {}
         self.runner: HostRunner | CudaRunner | None = None
@@ -397,6 +405,7 @@ class LockstepEngine(Engine):
         levels_needed: set[Level] = set()
         if isinstance(policy, _PendingTable):
             table = policy.table
+            self.table_path = policy.path
             served = table.for_archs(sorted(by_arch))
             missing = profiler.missing_combos(table, sorted(by_arch), self.batch_sizes)
             if missing and not self._graphed():
@@ -582,11 +591,19 @@ class LockstepEngine(Engine):
                 runner.launch_action(act.stages, act.b, index & 1)
             level = None
             if vlm is not None:
-                level = self.sm_policy.level(vlm.stages.arch, vlm.b, act.stages.arch if act else None,
-                                             act.b if act else 0)
-                vlm.stages.stage(vlm.b, vlm.requests)
-                runner.launch_vlm(vlm.stages, vlm.b, level,
-                                  after_handoff=act is not None and act.stages is vlm.stages and act.b == vlm.b)
+                try:
+                    level = self.sm_policy.level(vlm.stages.arch, vlm.b, act.stages.arch if act else None,
+                                                 act.b if act else 0)
+                    vlm.stages.stage(vlm.b, vlm.requests)
+                    runner.launch_vlm(vlm.stages, vlm.b, level,
+                                      after_handoff=act is not None and act.stages is vlm.stages and act.b == vlm.b)
+                except Exception as exc:
+                    if act is None:
+                        raise
+                    # Only the VLM batch fails (as in _decide_vlm): the action batch's handoff is issued already,
+                    # and its own stage still runs this lockstep.
+                    self._fail([vlm], exc)
+                    vlm, level = None, None
             if act is not None and vlm_first:
                 runner.launch_action(act.stages, act.b, index & 1)
             runner.end_launch()
@@ -833,6 +850,9 @@ class LockstepEngine(Engine):
             self._book()
             super().finish()
         finally:
+            # A later run() (the capacity harness reuses the engine between epochs) starts from idle: its first
+            # lockstep's gap must not span the pause.
+            self._back_to_back = False
             self.telemetry.close()
 
 

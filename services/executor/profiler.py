@@ -478,7 +478,11 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     engine.prepare()
     log.info("start-up with profiling took %.1f s", time.perf_counter() - t0)
-    print(format_table(SMTable.load(args.out)))
+    # The engine's table: --out, or, when --out holds a table of another GPU or torch (refused with a warning),
+    # the one it profiled into the profile directory instead.
+    path = engine.table_path or Path(args.out)
+    print(f"SM table file: {path}")
+    print(format_table(SMTable.load(path)))
     print(f"prepare: {json.dumps({k: round(v, 2) for k, v in engine.prepare_s.items()})}")
 
 

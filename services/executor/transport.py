@@ -311,9 +311,10 @@ class ExecutorIO:
         t0 = time.monotonic()
         self._leaving = True
         self._ctl_replies.clear()
-        self._ctl_send("drain", executor=self.name)
-        # The control plane re-solves the traffic plan before it answers a drain, for up to its solve time limit.
-        solve_s = self.cfg.control.solve_time_limit_s
+        sent = self._ctl_send("drain", executor=self.name)
+        # The control plane re-solves the traffic plan before it answers a drain, for up to its solve time limit;
+        # a drain that could not even be queued (the plane unreachable for long) is not waited for beyond that.
+        solve_s = self.cfg.control.solve_time_limit_s if sent else 0.0
         reply = self._ctl_reply(("ok", "error"), solve_s + min(self.WITHDRAW_REPLY_S, ack_timeout_s))
         if reply is None:
             log.warning("control plane did not answer our drain: leaving without waiting for the router")
