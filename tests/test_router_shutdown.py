@@ -1,7 +1,7 @@
 """The router process at shutdown: every request in flight still gets its one answer.
 
-A real router process (services.router.main) on loopback, with a stand-in control plane serving a
-hand-made routing table and a stand-in executor that takes requests and never answers.
+A real router process (services.router.main) and a real control plane on loopback; the executor is a
+stand-in registered with the control plane that takes requests and never answers.
 """
 
 from __future__ import annotations
@@ -9,40 +9,27 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import zmq
 
-from shared import control
-from shared.config import load_config
-from shared.control import RoutingTable
+from shared.cluster import control_request
 from shared.protocol import ErrorCode, ErrorReply, decode, pack_header
-from tests.helpers import cluster_config
+from tests.helpers import cluster_config, start_control_plane
 from tests.test_router_robustness import INFO, infer_frames
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_requests_in_flight_are_answered_when_the_router_stops(tmp_path):
-    path, _ = cluster_config(tmp_path)
-    cfg = load_config(path)
-    table = RoutingTable(version=1, models={"toy-a": INFO}, routes={"toy-a": ["ex0"]}, executors=["ex0"])
+    path, data = cluster_config(tmp_path)
+    cfg, cp_stop, cp_thread = start_control_plane(path, data)
+    # ex0, the test's executor socket, registers toy-a: the control plane's table routes it there.
+    reply = control_request(cfg.control.bind, "register", timeout_s=5, executor="ex0", device="cpu", instance="i0",
+                            models={"toy-a": INFO.to_wire()})
+    assert reply is not None and reply["kind"] == "registered", reply
     ctx = zmq.Context()
-    stop = threading.Event()
-    ctl = ctx.socket(zmq.ROUTER)
-    ctl.setsockopt(zmq.LINGER, 0)
-    ctl.bind(cfg.control.bind)
-
-    def control_plane() -> None:
-        while not stop.is_set():
-            if ctl.poll(50):
-                peer, _ = ctl.recv_multipart()
-                ctl.send_multipart([peer, control.pack("table", table=table.to_wire())])
-
-    server = threading.Thread(target=control_plane, daemon=True)
-    server.start()
     proc = subprocess.Popen([sys.executable, "-m", "services.router.main", "-c", str(path), "--log-level", "WARNING"],
                             cwd=ROOT, stderr=subprocess.PIPE, text=True)
     executor = ctx.socket(zmq.DEALER)
@@ -78,8 +65,8 @@ def test_requests_in_flight_are_answered_when_the_router_stops(tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-        stop.set()
-        server.join(5)
-        for s in (executor, robot, ctl):
+        cp_stop.set()
+        cp_thread.join(10)
+        for s in (executor, robot):
             s.close(linger=0)
         ctx.term()
