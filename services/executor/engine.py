@@ -235,9 +235,9 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-# The one list of engine kinds (shared/config.ENGINE_KINDS mirrors its keys, and adds "auto": resolve_kind). A kind is its
-# class, or "module:Class" for engines built on this module (imported on first use: they
-# import this module, so they cannot be imported here).
+# The one list of engine kinds (shared/config.ENGINE_KINDS mirrors its keys and adds "auto", see
+# resolve_kind). A kind is its class, or "module:Class" for engines built on this module
+# (imported on first use: they import this module, so they cannot be imported here).
 ENGINES: dict[str, type[Engine] | str] = {
     "monolithic": MonolithicEngine,
     "robion": "services.executor.lockstep:RobionEngine",

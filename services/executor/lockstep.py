@@ -155,36 +155,33 @@ class CudaRunner:
         ev.has_vlm = ev.has_act = False
         ev.last_end = None
         self._gate = self._ring[after % len(self._ring)] if after is not None else None
-        self._act_gated = False
-        self._act_started = False  # act_start recorded: once per lockstep, before the handoff copy
+        self._act_started = False
 
-    def _gate_action(self, s: torch.cuda.Stream) -> None:
+    def _start_action(self, s: torch.cuda.Stream) -> None:
+        """The action side's first operation of the lockstep (its handoff copy, or the action stage launched
+        without one): gate it on the lockstep it follows and record act_start, once per lockstep. A second
+        record after the copy left the copy out of ungated locksteps' action_ms."""
+        if self._act_started:
+            return
         gate = self._gate
-        if gate is not None and not self._act_gated:
-            # The action stream's own previous work is ordered already; wait for the other stream.
-            if gate.has_vlm:
-                s.wait_event(gate.vlm_end)
-            self._act_gated = True
+        # The action stream's own previous work is ordered already; wait for the other stream.
+        if gate is not None and gate.has_vlm:
+            s.wait_event(gate.vlm_end)
+        self._ev.act_start.record(s)
+        self._act_started = True
 
     def launch_handoff(self, stages: BufferedStages, b: int) -> None:
         """First part of the action stage: copy the handoff into the action side's buffers."""
         ev, s = self._ev, self.action_stream
         torch.cuda.set_stream(s)
-        self._gate_action(s)
-        ev.act_start.record(s)
-        self._act_started = True
+        self._start_action(s)
         stages.handoff(b)
         ev.handoff.record(s)
 
     def launch_action(self, stages: BufferedStages, b: int, slot: int) -> None:
         ev, s = self._ev, self.action_stream
         torch.cuda.set_stream(s)
-        # Launched without its handoff copy (not done by the engine). With a handoff, act_start was recorded before
-        # the copy, gated or not: a second record here left the copy out of ungated locksteps' action_ms.
-        if not self._act_started:
-            self._gate_action(s)
-            ev.act_start.record(s)
-            self._act_started = True
+        self._start_action(s)
         stages.action(b, slot)
         ev.act_end.record(s)
         ev.has_act = True

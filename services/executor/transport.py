@@ -94,13 +94,13 @@ class ExecutorIO:
     # after SIGTERM, stop_grace_period), and how long no request may arrive before the engine is stopped.
     WITHDRAW_REPLY_S = 1.0
     WITHDRAW_ACK_S = 3.0
+    WITHDRAW_ANSWER_S = 5.0
+    WITHDRAW_QUIET_S = 0.25
     # Requests the engine failed in a row (INTERNAL from a failed batch, none answered with actions between them)
     # after which the device is taken to be in a sticky fault (on a GPU, e.g. an illegal memory access fails
     # every later launch): the executor leaves routing and exits 1 for its supervisor to restart it, instead of
     # heartbeating as healthy while it answers its whole share of the fleet INTERNAL.
     FAILED_IN_ROW_FATAL = 32
-    WITHDRAW_ANSWER_S = 5.0
-    WITHDRAW_QUIET_S = 0.25
 
     def __init__(self, name: str, cfg: ClusterConfig, device: str, store: ModelStore, slot: EngineSlot,
                  hosted: Hosted, metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None,
