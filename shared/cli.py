@@ -13,7 +13,7 @@ import threading
 import time
 from pathlib import Path
 
-from shared.config import ConfigError, dial_address, parse_yaml, positive_number
+from shared.config import ConfigError, dial_address, parse_yaml, positive_number, solve_time_limit
 from shared.service import load_or_exit, log_level
 
 DEFAULT_DEMO = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
@@ -150,7 +150,7 @@ def applied_solve_limit(text: str) -> float:
     except (ConfigError, AttributeError):
         return 0.0
     limit = control.get("solve_time_limit_s") if isinstance(control, dict) else None
-    return float(limit) if isinstance(limit, (int, float)) and not isinstance(limit, bool) and 0 < limit < 1e6 else 0.0
+    return float(limit) if solve_time_limit(limit) else 0.0  # the plane refuses any other value
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:

@@ -16,6 +16,7 @@ import logging
 import math
 import time
 import uuid
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Iterable, Mapping, Sequence
 
@@ -25,6 +26,8 @@ import zmq
 from shared.protocol import (MAX_HEADER_BYTES, MAX_ID_CHARS, ErrorCode, ErrorReply, Hello, InferReply, InferRequest,
                              Metadata, ModelInfo, Ping, Pong, ProtocolError, RequestId, Timings, decode, encode,
                              header_id, message_bytes, unpack_answer_header, valid_id)
+from shared.service import connect
+
 
 log = logging.getLogger("robion.client")
 
@@ -33,6 +36,10 @@ log = logging.getLogger("robion.client")
 # router accepts (at most MAX_ID_CHARS characters).
 MAX_ROBOT_ID_CHARS = MAX_ID_CHARS - 48
 MAX_IDENTITY_BYTES = 255  # ZeroMQ's limit on a socket identity
+# Ids given up on (RequestTimeout, an interrupted wait) whose late answer has not come: at most this many are
+# remembered, the oldest forgotten first. A router answers every request it forwarded within its
+# request_timeout_s, so the set stays small unless the router restarts with answers owed.
+MAX_ABANDONED_IDS = 65536
 MAX_WHY_CHARS = 1024  # a decoder message can quote a peer's string (a dtype, a kind): keep the error readable
 
 # The answer each request expects, besides an error reply; its wire kind names it in a MalformedReply.
@@ -121,7 +128,7 @@ class RobotClient:
         try:
             self.socket.setsockopt(zmq.LINGER, 0)
             self.socket.setsockopt(zmq.IDENTITY, identity)
-            self.socket.connect(address)
+            connect(self.socket, address)
         except zmq.ZMQError:
             self.socket.close(linger=0)
             raise
@@ -133,6 +140,10 @@ class RobotClient:
         # returns them. A list, not a map by id: an id may be used again once answered, and each request's
         # outcome must still come out once.
         self._done: list[Completion] = []
+        # Ids whose request was given up on before its answer came (in give-up order). The answer may still come:
+        # sent again under one of these ids, a request would be paired with the older request's actions,
+        # computed for another observation. So such an id is refused until that late answer has arrived.
+        self._abandoned: OrderedDict[RequestId, None] = OrderedDict()
         self._metadata: dict[str, ModelInfo] | None = None
 
     # -- non-blocking API
@@ -257,6 +268,9 @@ class RobotClient:
                                                    f"{MAX_HEADER_BYTES} (is the instruction too long?)", str(rid))
         if rid in self._pending:
             raise RobionError(ErrorCode.BAD_REQUEST, f"id: request {rid!r} is already in flight", str(rid))
+        if rid in self._abandoned:
+            raise RobionError(ErrorCode.BAD_REQUEST, f"id: request {rid!r} timed out and its answer may still "
+                                                     f"come; give a retry a fresh id", str(rid))
         sent_at = time.monotonic()
         try:
             # NOBLOCK: while the router is unreachable the socket queues up to its high-water mark; a blocking
@@ -282,7 +296,16 @@ class RobotClient:
             if now - sent_at < self.timeout_s:
                 break
             stale.append(rid)
-        return [self._complete(rid, now, 0, error=RequestTimeout(rid, self.timeout_s)) for rid in stale]
+        out = [self._complete(rid, now, 0, error=RequestTimeout(rid, self.timeout_s)) for rid in stale]
+        for rid in stale:
+            self._abandon(rid)
+        return out
+
+    def _abandon(self, rid: RequestId) -> None:
+        """Remember an id given up on before its answer came, so it is not sent again until that answer has."""
+        self._abandoned[rid] = None
+        if len(self._abandoned) > MAX_ABANDONED_IDS:
+            self._abandoned.popitem(last=False)
 
     def _camera_names(self, model: str, n: int, timeout_s: float) -> list[str]:
         info = self.metadata(timeout_s=timeout_s).get(model)
@@ -309,7 +332,8 @@ class RobotClient:
                     return done
                 self._done.append(done)  # another request's outcome: poll returns it
         finally:
-            self._pending.pop(rid, None)
+            if self._pending.pop(rid, None) is not None:  # ended without its answer: it may still come
+                self._abandon(rid)
 
     def _receive_one(self) -> Completion | None:
         """Read one message; the outcome of the request in flight it answers, or None if it answers none."""
@@ -330,13 +354,16 @@ class RobotClient:
         except ProtocolError as exc:
             if rid not in self._pending:
                 log.debug("dropped a malformed reply for no request in flight (id %.80r): %s", rid, exc.message)
+                self._abandoned.pop(rid, None)  # an answer all the same: the id may be used again
                 return None
             return self._complete(rid, now, size, error=MalformedReply(rid, exc.message))
         if isinstance(msg, Metadata):
             self._metadata = msg.models  # newer news about the served models, whoever asked
         if rid not in self._pending:
             # Not a request in flight: its caller already got RequestTimeout (one outcome per request), or it
-            # is an answer no request of ours can match (id ""). Reporting it would invent a completion.
+            # is an answer no request of ours can match (id ""). Reporting it would invent a completion. A
+            # request given up on has now had its answer, so its id may be used again.
+            self._abandoned.pop(rid, None)
             return None
         answer = self._pending[rid][3]
         if isinstance(msg, ErrorReply):

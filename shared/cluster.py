@@ -15,6 +15,7 @@ import zmq
 
 from shared import control
 from shared.config import ClusterConfig, dial_address, positive_number
+from shared.service import connect
 
 log = logging.getLogger("robion.cluster")
 
@@ -32,7 +33,7 @@ def control_request(address: str, kind: str, timeout_s: float = 1.0, context: zm
     sock = ctx.socket(zmq.DEALER)
     sock.setsockopt(zmq.LINGER, 0)
     try:
-        sock.connect(address)
+        connect(sock, address)
         sock.send(control.pack(kind, **fields))
         if not sock.poll(math.ceil(timeout_s * 1000)):  # ceil: a sub-millisecond timeout still waits
             return None

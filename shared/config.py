@@ -103,6 +103,16 @@ def _seed(v: Any) -> bool:
 _ADDRESS_RE = re.compile(r"(tcp://(\*|\[[0-9A-Fa-f:.]+\]|[^:/\[\]\s]+):(\d+)|ipc://\S+|inproc://\S+)")
 
 
+# The traffic solve blocks every drain, resume and apply answer (and `robion ctl` waits that long): an hour is
+# far past any useful solve, and a bound keeps those waits something an operator can sit through.
+MAX_SOLVE_TIME_LIMIT_S = 3600
+
+
+def solve_time_limit(v: Any) -> bool:
+    """control.solve_time_limit_s: a positive number of seconds, at most MAX_SOLVE_TIME_LIMIT_S."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and positive_number(v) and v <= MAX_SOLVE_TIME_LIMIT_S
+
+
 def valid_address(v: Any) -> bool:
     """A ZeroMQ endpoint the services can bind or dial: tcp://HOST:PORT (HOST may be * in a bind),
     ipc://PATH or inproc://NAME. zmq refuses anything else with a bare "Invalid argument" at start-up."""
@@ -246,7 +256,8 @@ class ControlConfig:
     state_dir: str = "state"
     metrics_port: int = field(default=9101, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
     strategy: str = "ip"  # robot-to-GPU assignment: ip (integer program), smg, eps, none (round-robin per request)
-    solve_time_limit_s: float = field(default=5.0, metadata=_check(positive_number, "expected a positive number"))
+    solve_time_limit_s: float = field(default=5.0, metadata=_check(
+        solve_time_limit, f"expected a positive number of seconds, at most {MAX_SOLVE_TIME_LIMIT_S}"))
     # Share of each robot limit C_i the traffic controller fills (floor(C_i * headroom)); below 1
     # keeps slack under the measured limit, where SLO attainment falls off steeply.
     headroom: float = field(default=1.0, metadata=_check(lambda v: 0 < v <= 1, "expected a share in (0, 1]"))
@@ -294,7 +305,8 @@ def dial_address(bind: str, connect: str | None = None) -> str:
     """The address peers connect to: the explicit one, else the bind with wildcards made local."""
     if connect:
         return connect
-    return bind.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")
+    return (bind.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")
+            .replace("://[::]:", "://[::1]:"))
 
 
 STRATEGIES = ("ip", "smg", "eps", "none")

@@ -78,10 +78,14 @@ class ExecutorMetrics:
                                       buckets=(1e-5, 2.5e-5, 5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 5e-3), registry=r)
         self.sm_level = Gauge("robion_vlm_sm_level", "SMs the VLM stream was restricted to in the last lockstep "
                               "(the device's SM count when unrestricted)", registry=r)
-        self.up = Gauge("robion_executor_up", "1 while the executor serves", ["executor"], registry=r)
+        # Which executor (and device) this endpoint is: Prometheus's info idiom. Not robion_executor_up: that is the
+        # control plane's, which reads 0 for a configured executor that is down; a copy here, always 1 while
+        # scrapeable, doubled every executor on a dashboard of it.
+        self.info = Gauge("robion_executor_info", "Always 1; names the executor and device of this endpoint",
+                          ["executor", "device"], registry=r)
         self.gpu_memory = Gauge("robion_gpu_memory_used_bytes", "Device memory used by this executor", ["gpu"], registry=r)
         self._recent: dict[str, deque[bool]] = {m: deque(maxlen=window) for m in models}
-        self.up.labels(executor).set(1)
+        self.info.labels(executor, device).set(1)
         for m in models:  # series exist from the start, so dashboards show zeros, not gaps
             self.slo_attainment.labels(m).set(1.0)
             self.queue_depth.labels(m).set(0)

@@ -46,10 +46,24 @@ def setup_logging(name: str, level: str) -> None:
                         format=f"%(asctime)s {escaped} %(levelname)s %(name)s: %(message)s")
 
 
+def ipv6_ready(sock: zmq.Socket, address: str) -> None:
+    """Turn ZMQ_IPV6 on for an IPv6 literal (tcp://[::1]:5555): libzmq refuses one on a socket without it
+    ("No such device"). Only there: other addresses keep the IPv4 sockets they have always had."""
+    if address.startswith("tcp://["):
+        sock.setsockopt(zmq.IPV6, 1)
+
+
+def connect(sock: zmq.Socket, address: str) -> None:
+    """``sock.connect(address)``, IPv6 literals included."""
+    ipv6_ready(sock, address)
+    sock.connect(address)
+
+
 def bind(sock: zmq.Socket, address: str, key: str) -> None:
     """``sock.bind(address)``; a failure (the port taken by another process, an address not on this host) is
     a ConfigError naming the config key, so the service exits 2 with one line instead of a traceback."""
     try:
+        ipv6_ready(sock, address)
         sock.bind(address)
     except zmq.ZMQError as exc:
         sock.close(linger=0)

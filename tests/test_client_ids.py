@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import zmq
 
-from shared.client import RequestTimeout, RobotClient
-from shared.protocol import InferReply, decode, encode
+from shared.client import RequestTimeout, RobionError, RobotClient
+from shared.protocol import ErrorCode, InferReply, decode, encode
 from tests.test_router_robustness import INFO, RouterThread, one_executor_table
 
 
@@ -118,3 +118,38 @@ def test_an_int_id_given_by_the_caller_is_used_as_is(tmp_path, rid):
             assert c.submit("toy-a", images, state, request_id=rid) == rid
             got = poll_all(c, 3.0)
             assert [(x.request_id, x.ok) for x in got] == [(rid, True)], got
+
+
+def test_an_id_given_up_on_is_refused_until_its_late_answer_has_come(tmp_path):
+    """A caller's id whose request timed out in the client is still in flight at the router (request_timeout_s
+    outlasts the client's timeout_s). Sent again under it, a retry was paired with the older request's late
+    answer: actions computed for the older observation, handed over as the retry's. The SDK now refuses the id
+    (BAD_REQUEST, as docs/protocol.md asks: give a retry a fresh id) until that late answer has arrived."""
+    images, state = observation()
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        ex = rt.executor(b"ex0", rcvhwm=0)
+        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=0.3, context=rt.ctx) as c:
+            c.submit("toy-a", images, state, request_id="step")
+            robot, rid = receive(ex)
+            [timed_out] = c.poll(2.0)
+            assert isinstance(timed_out.error, RequestTimeout)
+            with pytest.raises(RobionError) as refused:
+                c.submit("toy-a", images, state, request_id="step")
+            assert refused.value.code == ErrorCode.BAD_REQUEST and "fresh id" in refused.value.message
+            # A blocking call that gives up abandons its request the same way.
+            with pytest.raises(RequestTimeout):
+                c.infer("toy-a", images, state, timeout_s=0.2)
+            blocked_robot, blocked_rid = receive(ex)
+
+            answer(ex, robot, "step", 1.0)  # the late answer, for the older observation: dropped
+            assert c.poll(0.5) == []
+            c.timeout_s = 3.0
+            assert c.submit("toy-a", images, state, request_id="step") == "step"  # now the id is free again
+            robot, rid = receive(ex)
+            assert rid == "step"
+            answer(ex, robot, "step", 0.0)
+            got = poll_all(c, 3.0)
+            assert [(x.request_id, x.ok) for x in got] == [("step", True)], got
+            assert np.all(got[0].actions == 0.0), "the retry got the older request's actions"
+            with pytest.raises(RobionError, match="fresh id"):  # the infer's answer never came
+                c.submit("toy-a", images, state, request_id=blocked_rid)

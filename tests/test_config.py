@@ -88,6 +88,10 @@ def test_defaults():
     (lambda d: d["executors"][0].update(name="\0ex"), "executors[0].name: expected at most 255 bytes"),
     # twice the limit overflowed a C long in the sockets' frame limit (OverflowError traceback)
     (lambda d: d.update(router={"max_message_bytes": 2 ** 62}), "router.max_message_bytes: expected a positive"),
+    # the plane re-solves before answering a drain or apply, and `robion ctl` waits that long: a limit of 1e9 s
+    # left the CLI an unusable timeout
+    (lambda d: d.update(control={"solve_time_limit_s": 1e9}), "control.solve_time_limit_s: expected a positive number"),
+    (lambda d: d.update(control={"solve_time_limit_s": 3600.5}), "control.solve_time_limit_s: expected a positive"),
 ])
 def test_errors_name_their_path(mutate, message):
     data = base()
@@ -234,3 +238,12 @@ def test_the_gpus_shorthand_is_capped_before_it_builds_executors():
     with pytest.raises(ConfigError, match=f"gpus: at most {MAX_EXECUTORS} executors in one cluster, got 100000000"):
         _expand_placement(placed("mix", gpus=100_000_000))
     assert len(_expand_placement(placed("mix", gpus=MAX_EXECUTORS))["executors"]) == MAX_EXECUTORS
+
+
+def test_peers_dial_a_wildcard_bind_on_loopback():
+    from shared.config import dial_address
+
+    assert dial_address("tcp://*:5555") == "tcp://127.0.0.1:5555"
+    assert dial_address("tcp://0.0.0.0:5555") == "tcp://127.0.0.1:5555"
+    assert dial_address("tcp://[::]:5555") == "tcp://[::1]:5555"
+    assert dial_address("tcp://[::]:5555", "tcp://host:1") == "tcp://host:1"

@@ -43,11 +43,13 @@ def test_metrics_endpoints_and_movement(tmp_path, engine):
         before = scrape(em)
         for name in ["robion_requests_total", "robion_request_duration_seconds", "robion_queue_wait_seconds",
                      "robion_slo_attainment_ratio", "robion_queue_depth", "robion_batch_size",
-                     "robion_lockstep_duration_seconds", "robion_vlm_sm_level", "robion_executor_up",
+                     "robion_lockstep_duration_seconds", "robion_vlm_sm_level", "robion_executor_info",
                      "robion_gpu_memory_used_bytes", "robion_inference_count_total", "robion_execution_count_total",
                      "robion_stage_duration_seconds", "robion_slo_met_total"]:
             assert f"# TYPE {name}" in before or f"# HELP {name}" in before, name
-        assert value(before, "robion_executor_up", executor="ex0") == 1
+        assert value(before, "robion_executor_info", executor="ex0", device="cpu") == 1
+        # liveness is the control plane's series alone: the executor's own copy doubled every executor
+        assert "robion_executor_up" not in before
         control = scrape(cm)
         for name in ["robion_executors_registered", "robion_executor_up", "robion_routing_table_version",
                      "robion_robots_assigned"]:

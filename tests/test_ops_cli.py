@@ -215,6 +215,9 @@ def test_the_solve_limit_of_an_applied_file_is_read_without_a_full_check():
     assert applied_solve_limit("control: {solve_time_limit_s: 20}\nmodels: []\n") == 20.0
     assert applied_solve_limit("models: []\n") == 0.0
     assert applied_solve_limit("control: {solve_time_limit_s: true}") == 0.0
+    # a limit the plane refuses (over an hour) is not waited for: the apply's answer is a quick error
+    assert applied_solve_limit("control: {solve_time_limit_s: 3600}") == 3600.0
+    assert applied_solve_limit("control: {solve_time_limit_s: 1.0e+9}") == 0.0
     assert applied_solve_limit("[1, 2") == 0.0 and applied_solve_limit("- a\n- b\n") == 0.0
 
 

@@ -2,10 +2,16 @@
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
 
+import numpy as np
+import pytest
+import yaml
+
+from shared.client import RobotClient
 from tests.helpers import cluster_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -59,3 +65,43 @@ def test_killed_launcher_leaves_no_orphans(tmp_path):
     proc.kill()  # no chance to clean up: the services notice their launcher is gone
     proc.wait(10)
     assert wait_gone(path) == []
+
+
+def ipv6_loopback_ports(n: int) -> list[int] | None:
+    """n free ports on ::1, or None on a host without IPv6 loopback."""
+    socks = []
+    try:
+        for _ in range(n):
+            s = socket.socket(socket.AF_INET6)
+            socks.append(s)
+            s.bind(("::1", 0))
+        return [s.getsockname()[1] for s in socks]
+    except OSError:
+        return None
+    finally:
+        for s in socks:
+            s.close()
+
+
+def test_a_cluster_on_ipv6_addresses_serves_a_robot(tmp_path):
+    """Every service binds and dials IPv6 literals (libzmq refuses them unless a socket turns ZMQ_IPV6 on), and
+    a robot's SDK reaches the router at one. The control plane binds the wildcard [::], which peers dial as ::1."""
+    ports = ipv6_loopback_ports(3)
+    if ports is None:
+        pytest.skip("no IPv6 loopback on this host")
+    rp, bp, cp = ports
+    path, data = cluster_config(tmp_path)
+    data["router"].update(bind=f"tcp://[::1]:{rp}", backend=f"tcp://[::1]:{bp}")
+    data["control"]["bind"] = f"tcp://[::]:{cp}"
+    path.write_text(yaml.safe_dump(data))
+    proc = start_up(path)
+    try:
+        with RobotClient(f"tcp://[::1]:{rp}", robot_id="v6", timeout_s=30) as client:
+            info = client.metadata()["toy-a"]
+            images = {c: np.zeros(info.image_shape, np.uint8) for c in info.cameras}
+            done = client.infer("toy-a", images, np.zeros(info.state_dim, np.float32), "go")
+            assert done.actions.shape == (info.horizon, info.action_dim)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "'router': 0" in out and "'control': 0" in out

@@ -25,7 +25,7 @@ from shared.config import ClusterConfig, ModelConfig, dial_address, settings_dig
 from shared.metrics import ExecutorMetrics
 from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, RequestId, Timings, decode,
                              encode, error_frames, header_id, message_bytes, unpack_header)
-from shared.service import connected_again
+from shared.service import connect, connected_again
 
 log = logging.getLogger("robion.executor")
 
@@ -113,7 +113,6 @@ class ExecutorIO:
         self.served: dict[str, ServedInput] = hosted.inputs  # replaced whole on a reload, never mutated
         # Models the router may route here: the configured ones and every one served here since
         # (a later apply may add models). One of them not served now is a routing race (UNAVAILABLE).
-        self._known: set[str] = {m.name for m in cfg.models} | set(self.served)
         self._gauged: set[str] = set(self.served)  # models with per-model gauge series
         self.limits = limits or {}  # measured robot limits of the models this executor owns
         # Names this process: a registration with another token is a restarted executor (a rollout
@@ -156,7 +155,7 @@ class ExecutorIO:
         # could not tell a later restart of ours from our first hello (requests in flight to the old
         # process would then wait out router.request_timeout_s).
         self.backend_events = self.backend.get_monitor_socket(zmq.EVENT_CONNECTED)
-        self.backend.connect(dial_address(cfg.router.backend, cfg.router.backend_connect))
+        connect(self.backend, dial_address(cfg.router.backend, cfg.router.backend_connect))
         # Hello at once: with ROUTER_HANDOVER the connect takes this name over at the router, so it must learn
         # now, not after the engine has started (seconds to minutes), that an earlier process of this name is
         # gone and its requests in flight will never be answered. Requests routed here meanwhile wait in this
@@ -166,7 +165,7 @@ class ExecutorIO:
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.IDENTITY, name.encode())  # the control plane addresses load requests by name
         self.ctl.setsockopt(zmq.LINGER, 0)
-        self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
+        connect(self.ctl, dial_address(cfg.control.bind, cfg.control.connect))
 
         addr = f"inproc://executor-wake-{id(self)}"
         self.wake_rx = self.ctx.socket(zmq.PAIR)
@@ -365,7 +364,6 @@ class ExecutorIO:
         """Off the I/O thread: wait for held requests to be answered, then swap models and engine."""
         outcome: dict = {"id": load_id, "ok": True}
         names = [mc.name for mc in configs]
-        self._known.update(names)
         previous = [s.config for s in self.served.values()]
         log.info("reloading with models %s: waiting for %d requests in flight", names, self.in_flight)
         end = time.monotonic() + 60
@@ -551,11 +549,11 @@ class ExecutorIO:
                 raise ProtocolError(ErrorCode.BAD_REQUEST, "executors take only infer requests")
             served = self.served.get(msg.model)
             if served is None:
-                if msg.model in self._known:
-                    # Routed by a table older than our model set (a placement change in progress,
-                    # a restart with other models): another executor serves it, so retry.
-                    raise ProtocolError(ErrorCode.UNAVAILABLE, f"model {msg.model!r} is not served by {self.name} now")
-                raise ProtocolError(ErrorCode.UNKNOWN_MODEL, f"model {msg.model!r} is not served by {self.name}")
+                # Requests come only through the router, which forwards only models of its routing table: this
+                # one was routed by a table older than our model set (a placement change in progress, a restart
+                # with other models, one an `apply` added that our config file does not name). Another executor
+                # serves it, so retry; the router itself answers UNKNOWN_MODEL for names the cluster lacks.
+                raise ProtocolError(ErrorCode.UNAVAILABLE, f"model {msg.model!r} is not served by {self.name} now")
             self.slot.submit(to_request(msg, served, envelope, arrival))
             self.stats["requests"] += 1
             self.in_flight += 1

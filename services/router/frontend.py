@@ -21,7 +21,7 @@ from shared.control import RoutingTable, TableError
 from shared.metrics import RouterMetrics, serve
 from shared.protocol import (MAX_ID_CHARS, ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode,
                              error_frames, header_id, max_frames, message_bytes, unpack_header)
-from shared.service import bind, connected_again
+from shared.service import bind, connect, connected_again
 
 log = logging.getLogger("robion.router")
 
@@ -102,7 +102,7 @@ class Router:
         # Each (re)connect to the control plane is reported here: it may be a restarted plane whose tables
         # count from v1 again, and its v0 is not always seen (executors can register before our first poll).
         self.ctl_events = self.ctl.get_monitor_socket(zmq.EVENT_CONNECTED)
-        self.ctl.connect(dial_address(cfg.control.bind, cfg.control.connect))
+        connect(self.ctl, dial_address(cfg.control.bind, cfg.control.connect))
         self._last_table_poll = 0.0
         self._last_sweep = 0.0
         self._last_pin_sweep = time.monotonic()
