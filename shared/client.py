@@ -351,12 +351,13 @@ class RobotClient:
         rid = header_id(header)
         try:
             msg = decode(frames, header)
-        except ProtocolError as exc:
+        except Exception as exc:  # ProtocolError, or a fault of the decoder itself: never out of poll()
+            why = exc.message if isinstance(exc, ProtocolError) else f"cannot be decoded ({type(exc).__name__})"
             if rid not in self._pending:
-                log.debug("dropped a malformed reply for no request in flight (id %.80r): %s", rid, exc.message)
+                log.debug("dropped a malformed reply for no request in flight (id %.80r): %s", rid, why)
                 self._abandoned.pop(rid, None)  # an answer all the same: the id may be used again
                 return None
-            return self._complete(rid, now, size, error=MalformedReply(rid, exc.message))
+            return self._complete(rid, now, size, error=MalformedReply(rid, why))
         if isinstance(msg, Metadata):
             self._metadata = msg.models  # newer news about the served models, whoever asked
         if rid not in self._pending:
@@ -401,28 +402,34 @@ def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[Rob
         poller.register(c.socket, zmq.POLLIN)
         by_socket[c.socket] = c
 
-    # Nothing is sent or read until the poll below, so each client's next expiry holds throughout.
-    expiry = {c: c._next_expiry() for c in clients}
+    end = time.monotonic() + timeout_s
+    while True:
+        # Nothing is sent or read until the poll below, so each client's next expiry holds until then.
+        expiry = {c: c._next_expiry() for c in clients}
 
-    def expired(c: RobotClient, now: float) -> bool:
-        return expiry[c] is not None and expiry[c] <= now
+        def expired(c: RobotClient, now: float) -> bool:
+            return expiry[c] is not None and expiry[c] <= now
 
-    # A client may hold outcomes that a blocking call of it read off the socket already: the socket
-    # need not be readable for those, and they are ready now, so do not wait for anything else. Nor
-    # for a client with a request past its timeout: that request's outcome is ready too.
-    now = time.monotonic()
-    ready = [c for c in clients if c._done or expired(c, now)]
-    wait_ms: int | None = None if math.isinf(timeout_s) else max(0, int(timeout_s * 1000))  # None: no limit
-    soonest = min((e for e in expiry.values() if e is not None and not math.isinf(e)), default=None)
-    if soonest is not None:
-        until = max(0, math.ceil((soonest - now) * 1000))
-        wait_ms = until if wait_ms is None else min(wait_ms, until)
-    events = poller.poll(0 if ready else wait_ms)
-    readable = {by_socket[sock] for sock, _ in events}
-    now = time.monotonic()
-    listed = set(ready)
-    ready += [c for c in clients if c not in listed and (c in readable or expired(c, now))]
-    out: list[tuple[RobotClient, Completion]] = []
-    for client in ready:
-        out.extend((client, c) for c in client.poll(0))
-    return out
+        # A client may hold outcomes that a blocking call of it read off the socket already: the socket
+        # need not be readable for those, and they are ready now, so do not wait for anything else. Nor
+        # for a client with a request past its timeout: that request's outcome is ready too.
+        now = time.monotonic()
+        ready = [c for c in clients if c._done or expired(c, now)]
+        left = end - now
+        wait_ms: int | None = None if math.isinf(left) else max(0, math.ceil(left * 1000))  # None: no limit
+        soonest = min((e for e in expiry.values() if e is not None and not math.isinf(e)), default=None)
+        if soonest is not None:
+            until = max(0, math.ceil((soonest - now) * 1000))
+            wait_ms = until if wait_ms is None else min(wait_ms, until)
+        events = poller.poll(0 if ready else wait_ms)
+        readable = {by_socket[sock] for sock, _ in events}
+        now = time.monotonic()
+        listed = set(ready)
+        ready += [c for c in clients if c not in listed and (c in readable or expired(c, now))]
+        out: list[tuple[RobotClient, Completion]] = []
+        for client in ready:
+            out.extend((client, c) for c in client.poll(0))
+        # A socket can be readable with nothing to report: a late answer to a request already timed out, or one
+        # no request matches, is dropped. That used to end the wait at once, empty, long before its timeout.
+        if out or now >= end:
+            return out

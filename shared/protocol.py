@@ -50,6 +50,17 @@ class ProtocolError(Exception):
         self.message = message
 
 
+def shown(value: Any, limit: int = 60) -> str:
+    """A value off the wire, quoted for an error message: a string or number as repr, cut to ``limit``
+    characters; anything else by its type's name. repr of a list nested a thousand deep (about 1 KB of
+    msgpack) raises RecursionError, which escaped the decoders' ProtocolError handling: the router answered
+    nothing and the SDK raised out of poll()."""
+    if value is None or isinstance(value, (str, int, float)):  # bool is an int
+        text = repr(value)
+        return text if len(text) <= limit else text[:limit] + "..."
+    return f"a {type(value).__name__}"
+
+
 Frame = bytes | memoryview
 RequestId = str | int  # echoed with its wire type: 7 and "7" are two different requests
 
@@ -62,7 +73,9 @@ def encode_array(arr: np.ndarray, frames: list[Frame]) -> dict[str, Any]:
         raise TypeError(f"expected a numpy array, got {type(arr).__name__}")
     if arr.dtype.name not in ALLOWED_DTYPES:
         raise TypeError(f"dtype {arr.dtype.name} cannot travel; allowed: {sorted(ALLOWED_DTYPES)}")
-    arr = np.ascontiguousarray(arr)
+    # The wire is little-endian and names dtypes without a byte order: a big-endian array (">f8") went out
+    # under its name ("float64") with its bytes unswapped, and arrived as other numbers.
+    arr = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<"))
     ref: dict[str, Any] = {"dtype": arr.dtype.name, "shape": list(arr.shape)}
     if arr.nbytes <= INLINE_ARRAY_BYTES:
         ref["data"] = arr.tobytes()
@@ -82,7 +95,7 @@ def decode_array(ref: Any, frames: Sequence[Frame], where: str, used: set[int] |
         raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}: expected an array object {{dtype, shape, frame|data}}")
     dtype, shape = ref.get("dtype"), ref.get("shape")
     if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
-        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.dtype: expected one of {sorted(ALLOWED_DTYPES)}, got {dtype!r}")
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.dtype: expected one of {sorted(ALLOWED_DTYPES)}, got {shown(dtype)}")
     if (not isinstance(shape, (list, tuple)) or len(shape) > MAX_ARRAY_DIMS
             or not all(isinstance(d, int) and not isinstance(d, bool) and 0 <= d < 2**31 for d in shape)):
         raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.shape: expected a list of at most {MAX_ARRAY_DIMS} non-negative integers")
@@ -91,7 +104,7 @@ def decode_array(ref: Any, frames: Sequence[Frame], where: str, used: set[int] |
     if "frame" in ref:
         idx = ref["frame"]
         if not isinstance(idx, int) or isinstance(idx, bool) or not 1 <= idx < len(frames):
-            raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.frame: {idx!r} does not name one of the {len(frames) - 1} array frames")
+            raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.frame: {shown(idx)} does not name one of the {len(frames) - 1} array frames")
         if used is not None:
             if idx in used:
                 raise ProtocolError(ErrorCode.BAD_REQUEST, f"{where}.frame: frame {idx} is referenced twice")
@@ -267,7 +280,7 @@ def check_header(header: dict[str, Any]) -> RequestId:
     version = header.get("v", PROTOCOL_VERSION)
     if type(version) is not int or version != PROTOCOL_VERSION:
         raise ProtocolError(ErrorCode.BAD_REQUEST,
-                            f"v: protocol version {version!r} is not supported (this server speaks {PROTOCOL_VERSION})")
+                            f"v: protocol version {shown(version)} is not supported (this server speaks {PROTOCOL_VERSION})")
     rid = header.get("id", "")
     if not valid_id(rid):
         raise ProtocolError(ErrorCode.BAD_REQUEST,
@@ -296,6 +309,12 @@ def max_frames(kind: Any, cameras: int | None = None) -> int:
 def encode(msg: Message) -> list[Frame]:
     frames: list[Frame] = [b""]
     if isinstance(msg, InferRequest):
+        # What the router's header decoder refuses (strict string keys, at most MAX_MAP_LEN entries) could only
+        # be answered with id "": refused here instead, so a client learns now rather than at its timeout.
+        if not all(isinstance(cam, str) for cam in msg.images):
+            raise TypeError("images: camera names must be strings")
+        if len(msg.images) > MAX_MAP_LEN:
+            raise ValueError(f"images: at most {MAX_MAP_LEN} cameras, got {len(msg.images)}")
         header = {"v": PROTOCOL_VERSION, "kind": "infer", "id": msg.id, "robot": msg.robot, "model": msg.model,
                   "obs": {"images": {cam: encode_array(img, frames) for cam, img in msg.images.items()},
                           "state": encode_array(np.asarray(msg.state, dtype=np.float32), frames),
@@ -394,7 +413,7 @@ def decode(frames: Sequence[Frame], header: dict[str, Any] | None = None) -> Mes
     elif kind == "pong":
         msg = Pong(id=rid)
     else:
-        raise ProtocolError(ErrorCode.BAD_REQUEST, f"kind: unknown message kind {kind!r}")
+        raise ProtocolError(ErrorCode.BAD_REQUEST, f"kind: unknown message kind {shown(kind)}")
     if len(used) != len(frames) - 1:
         raise ProtocolError(ErrorCode.BAD_REQUEST,
                             f"message has {len(frames) - 1} array frames but the header references {len(used)}")

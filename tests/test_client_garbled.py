@@ -61,6 +61,13 @@ def reply_header(rid: Any, **changes: Any) -> dict[str, Any]:
                     "timings": {"queue_ms": 0.0, "server_ms": 1.0}}, changes)
 
 
+def nested(n: int) -> list:
+    v: list = []
+    for _ in range(n):
+        v = [v]
+    return v
+
+
 def framed(rid: Any, actions: dict[str, Any], *frames: bytes) -> Frames:
     return [pack_header(reply_header(rid, actions=actions)), *frames]
 
@@ -91,6 +98,11 @@ MALFORMED: dict[str, tuple[Callable[[Any], Frames], str]] = {
     # completed), the other to complete "ok" with no actions.
     "a request kind": (lambda rid: [pack_header({"v": 1, "kind": "ping", "id": rid})], "'ping'"),
     "a pong": (lambda rid: [bytes(f) for f in encode(Pong(id=rid))], "'pong'"),
+    # repr() of a list nested a thousand deep raised RecursionError out of poll(), and the request waited out
+    # its timeout
+    "deeply nested version": (lambda rid: [pack_header(reply_header(rid, v=nested(1000)))], "protocol version"),
+    "deeply nested dtype": (lambda rid: framed(rid, {"dtype": nested(1000), "shape": [2, 3], "data": b""}),
+                            "actions.dtype"),
 }
 
 # Replies that carry no id of a request in flight here: there is nothing to fail, so they are dropped.

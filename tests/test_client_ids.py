@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import zmq
 
-from shared.client import RequestTimeout, RobionError, RobotClient
+from shared.client import RequestTimeout, RobionError, RobotClient, wait_any
 from shared.protocol import ErrorCode, InferReply, decode, encode
 from tests.test_router_robustness import INFO, RouterThread, one_executor_table
 
@@ -153,3 +153,40 @@ def test_an_id_given_up_on_is_refused_until_its_late_answer_has_come(tmp_path):
             assert np.all(got[0].actions == 0.0), "the retry got the older request's actions"
             with pytest.raises(RobionError, match="fresh id"):  # the infer's answer never came
                 c.submit("toy-a", images, state, request_id=blocked_rid)
+
+
+def test_wait_any_waits_past_a_late_answer_it_drops(tmp_path):
+    """A late answer to a request already timed out makes the socket readable but completes nothing:
+    wait_any returned [] at once, long before its timeout and before any completion."""
+    images, state = observation()
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        ex = rt.executor(b"ex0", rcvhwm=0)
+        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=0.5, context=rt.ctx) as c:
+            old = c.submit("toy-a", images, state)
+            robot, _ = receive(ex)
+            [timed_out] = c.poll(2.0)
+            assert timed_out.request_id == old and isinstance(timed_out.error, RequestTimeout)
+            new = c.submit("toy-a", images, state)
+            receive(ex)  # held: never answered
+            answer(ex, robot, old, 1.0)  # the late answer, dropped by the client
+            assert c.socket.poll(2000), "the late answer did not arrive"
+            t0 = time.monotonic()
+            got = wait_any([c], 5.0)
+            waited = time.monotonic() - t0
+            assert [(x.request_id, type(x.error)) for _, x in got] == [(new, RequestTimeout)], got
+            assert waited > 0.2, f"returned after {waited:.3f} s"
+
+
+def test_camera_names_the_router_cannot_read_fail_at_once(tmp_path):
+    """Camera names that are not strings make the router's header decoder fail before it reads the id: its
+    answer carried id "" and the request waited out its whole timeout. The SDK refuses them before sending."""
+    images, state = observation()
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        rt.answering_executor(b"ex0")
+        with RobotClient(rt.cfg.router.bind, robot_id="arm", timeout_s=3.0, context=rt.ctx) as c:
+            t0 = time.monotonic()
+            with pytest.raises(RobionError) as e:
+                c.infer("toy-a", dict(enumerate(images.values())), state)
+            assert e.value.code == ErrorCode.BAD_REQUEST and time.monotonic() - t0 < 1.0
+            assert c.pending() == 0
+            assert c.infer("toy-a", images, state).ok

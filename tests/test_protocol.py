@@ -90,3 +90,50 @@ def test_frame_count_mismatch_and_garbage():
 def test_arrays_that_cannot_travel_are_refused_at_the_sender():
     with pytest.raises(TypeError):
         encode(InferRequest("x", "r", "m", images={"a": np.zeros(3, dtype=object)}, state=np.zeros(2, np.float32)))
+
+
+def deep(n: int = 1000):
+    """A list nested ``n`` deep: about 1 KB of msgpack, and a RecursionError for repr()."""
+    v: list = []
+    for _ in range(n):
+        v = [v]
+    return v
+
+
+@pytest.mark.parametrize("mutate", [
+    lambda h: h.update(v=deep()),
+    lambda h: h.update(kind=deep()),
+    lambda h: h["obs"]["images"]["base"].update(dtype=deep()),
+    lambda h: h["obs"]["images"]["base"].update(frame=deep()),
+    lambda h: h["obs"]["images"]["base"].update(shape=deep()),
+    lambda h: h.update(model=deep()),
+    lambda h: h.update(id=deep()),
+])
+def test_a_deeply_nested_value_is_a_bad_request_not_a_crash(mutate):
+    """Error messages quoted wire values with repr(), which raises RecursionError on a list nested a
+    thousand deep: the router then answered nothing, and the SDK raised out of poll()."""
+    frames = [bytes(f) for f in encode(request())]
+    with pytest.raises(ProtocolError) as e:
+        decode(tamper(frames, mutate))
+    assert e.value.code == ErrorCode.BAD_REQUEST and len(e.value.message) < 300
+
+
+def test_big_endian_arrays_arrive_as_the_same_numbers():
+    """The wire is little-endian; a big-endian array went out under its dtype's name with its bytes
+    unswapped, so 1 arrived as 16777216."""
+    inline = np.arange(4, dtype=">i4")
+    framed = np.linspace(-1, 1, 400, dtype=">f4")
+    frames = [bytes(f) for f in encode(InferRequest("x", "r", "m", images={"a": inline, "b": framed},
+                                                    state=np.zeros(2, np.float32)))]
+    got = decode(frames)
+    assert got.images["a"].tolist() == [0, 1, 2, 3] and got.images["a"].dtype == np.int32
+    assert np.array_equal(got.images["b"], framed.astype("<f4"))
+
+
+@pytest.mark.parametrize("images", [{0: np.zeros(3, np.uint8)},
+                                    {f"c{i}": np.zeros(1, np.uint8) for i in range(1025)}])
+def test_camera_maps_the_router_cannot_read_are_refused_at_the_sender(images):
+    """Camera names that are not strings, or more cameras than a header map holds: the router's decoder
+    refuses those before it can read the id, so its answer would carry id "" and the request time out."""
+    with pytest.raises((TypeError, ValueError)):
+        encode(InferRequest("x", "r", "m", images=images, state=np.zeros(2, np.float32)))

@@ -394,3 +394,17 @@ def test_decode_keeps_id_types_and_checks_v_and_id():
         with pytest.raises(ProtocolError) as e:
             decode([pack_header(header)])
         assert e.value.code == ErrorCode.BAD_REQUEST
+
+
+def test_deeply_nested_header_values_are_answered_bad_request(tmp_path):
+    """repr() of a list nested a thousand deep raises RecursionError: quoted in an error message, it took the
+    router's handling of the message down, and the robot got no answer at all."""
+    v: list = []
+    for _ in range(1000):
+        v = [v]
+    with RouterThread(tmp_path, one_executor_table()) as rt:
+        robot = rt.robot(b"arm")
+        for rid, header in (("k", {"v": 1, "kind": v, "id": "k"}), ("v", {"v": v, "kind": "ping", "id": "v"})):
+            rep = ask(robot, [pack_header(header)])
+            assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.BAD_REQUEST and rep.id == rid, rep
+        assert ask(robot, [pack_header({"v": 1, "kind": "ping", "id": "p"})]).id == "p"

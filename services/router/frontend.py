@@ -20,7 +20,7 @@ from shared.config import ClusterConfig, dial_address
 from shared.control import RoutingTable, TableError
 from shared.metrics import RouterMetrics, serve
 from shared.protocol import (MAX_ID_CHARS, ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode,
-                             error_frames, header_id, max_frames, message_bytes, unpack_header)
+                             error_frames, header_id, max_frames, message_bytes, shown, unpack_header)
 from shared.service import bind, connect, connected_again
 
 log = logging.getLogger("robion.router")
@@ -221,10 +221,10 @@ class Router:
         if len(body) > most:
             # libzmq cannot cap frames per message (see __init__), so this is where a message
             # made of many frames, each under the transport's per-frame limit, is refused.
-            self._too_many_frames.warn("refused a %r message of %d frames from robot %r (at most %d)",
-                                       kind, len(body), robot, most)
+            self._too_many_frames.warn("refused a %s message of %d frames from robot %r (at most %d)",
+                                       shown(kind), len(body), robot, most)
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST,
-                                     f"message has {len(body)} frames; a {kind!r} message has at most {most}")
+                                     f"message has {len(body)} frames; a {shown(kind)} message has at most {most}")
         size = message_bytes([f.buffer for f in body])
         if size > self.cfg.router.max_message_bytes:
             return self._reply_error(robot, rid, ErrorCode.TOO_LARGE,
@@ -237,7 +237,7 @@ class Router:
             self.frontend.send_multipart([robot, *encode(Pong(id=rid))], copy=False)
             return
         if kind != "infer":
-            return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, f"kind: unknown message kind {kind!r}")
+            return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, f"kind: unknown message kind {shown(kind)}")
         if not isinstance(model, str):
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, "model: expected str")
         if rid == "":
@@ -350,8 +350,8 @@ class Router:
         instance = msg.get("instance")
         if (msg.get("kind") != "executor_hello" or msg.get("executor", name) != name
                 or not (instance is None or (isinstance(instance, str) and instance))):
-            return self._bad_hello.warn("ignored a malformed hello from executor %r: kind %r, executor %r, instance %r",
-                                        identity, msg.get("kind"), msg.get("executor"), instance)
+            return self._bad_hello.warn("ignored a malformed hello from executor %r: kind %s, executor %s, instance %s",
+                                        identity, shown(msg.get("kind")), shown(msg.get("executor")), shown(instance))
         if instance is None:
             return  # an executor from before the instance field: a restart cannot be told
         known = self._instances.get(name)
