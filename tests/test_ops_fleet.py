@@ -104,3 +104,42 @@ def test_json_report_of_a_model_with_no_replies_is_strict_json(tmp_path):
     report = json.loads(out.read_text(), parse_constant=refuse)
     r = report["models"]["toy-a"]
     assert r["replies"] == 0 and r["p50_ms"] is None and r["p99_ms"] is None and r["server_p50_ms"] is None
+
+
+class TwoModelRouter(HalfDeafRouter):
+    """Describes toy-a (answered UNAVAILABLE) and toy-wide, whose 1025 cameras no request can carry (the SDK
+    refuses to send one), and a third model no robot is spread to."""
+
+    def _serve(self) -> None:
+        wide = {**TOY_INFO, "cameras": [f"c{i}" for i in range(1025)], "image_shape": [1, 1, 3]}
+        while not self.stop.is_set():
+            if not self.sock.poll(50):
+                continue
+            identity, *frames = self.sock.recv_multipart(copy=True)
+            msg = protocol.decode(frames)
+            if isinstance(msg, protocol.Hello):
+                reply = protocol.Metadata(id=msg.id, models={
+                    "toy-a": protocol.ModelInfo.from_wire(TOY_INFO), "toy-wide": protocol.ModelInfo.from_wire(wide),
+                    "toy-z": protocol.ModelInfo.from_wire(TOY_INFO)})
+            else:
+                self.answered += 1
+                reply = protocol.ErrorReply(id=msg.id, code=protocol.ErrorCode.UNAVAILABLE, message="no executor")
+            self.sock.send_multipart([identity, *protocol.encode(reply)])
+
+
+def test_a_request_that_cannot_be_sent_fails_alone_and_idle_models_are_not_reported():
+    """A submit that raised (a request the SDK refuses to send, or a send queue full with the router gone)
+    ended the whole run with no report; it is now that request's failure. A model no robot was spread to
+    (fewer robots than models) was reported at 0% SLO attainment for requests never sent."""
+    (port,) = free_ports(1)
+    router = TwoModelRouter(f"tcp://127.0.0.1:{port}")
+    try:
+        report = run_fleet(f"tcp://127.0.0.1:{port}", robots=2, hz=4, duration_s=0.5, network="none",
+                           models=["toy-a", "toy-wide", "toy-z"])
+    finally:
+        router.close()
+    assert set(report.models) == {"toy-a", "toy-wide"}
+    a, wide = report.models["toy-a"], report.models["toy-wide"]
+    assert a.sent == router.answered > 0 and a.errors == {"UNAVAILABLE": a.sent}
+    assert wide.sent > 0 and wide.replies == 0 and wide.errors == {"BAD_REQUEST": wide.sent}, wide.errors
+    assert wide.slo_attainment == 0

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import zmq
 
-from shared.client import Completion, RequestTimeout, RobotClient, wait_any
+from shared.client import Completion, RequestTimeout, RobionError, RobotClient, wait_any
 from shared.config import positive_number
 from shared.netmodel import NETWORKS
 
@@ -85,6 +85,9 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
     missing = [m for m in models if m not in meta]
     if missing:
         raise ValueError(f"models not served: {missing}")
+    # Robots are spread round-robin, so with fewer robots than models the last models get none: reported, they
+    # read 0% SLO attainment for requests never sent.
+    models = models[:robots]
 
     clients: list[RobotClient] = []
     obs = []
@@ -107,7 +110,14 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
         for i, c in enumerate(clients):
             while next_send[i] <= now and next_send[i] < end:
                 model, images, state, text = obs[i]
-                sent[model].append(c.submit(model, images, state, text))
+                try:
+                    sent[model].append(c.submit(model, images, state, text))
+                except RobionError as exc:
+                    # Not sent (send queue full with the router unreachable, a request the router would
+                    # refuse): that request failed, not the run. It counts as sent with its error.
+                    key = f"unsent-{i}-{next_send[i]}"
+                    sent[model].append(key)
+                    done[key] = Completion(request_id=key, model=model, sent_at=now, received_at=now, error=exc)
                 next_send[i] += period  # on the robot's clock, whether or not a reply came
         upcoming = min((t for t in next_send if t < end), default=None)
         if upcoming is None:
