@@ -38,16 +38,19 @@ class HalfDeafRouter:
             if not self.sock.poll(50):
                 continue
             identity, *frames = self.sock.recv_multipart(copy=True)
-            msg = protocol.decode(frames)
-            if isinstance(msg, protocol.Hello):
-                reply = protocol.Metadata(id=msg.id, models={"toy-a": protocol.ModelInfo.from_wire(TOY_INFO)})
-            elif msg.robot.endswith("-000"):  # robot 0 (by name: each client has a socket identity of its own)
-                self.answered += 1
-                reply = protocol.ErrorReply(id=msg.id, code=protocol.ErrorCode.UNAVAILABLE, message="no executor")
-            else:  # robot 1: the reply is lost
-                self.dropped += 1
-                continue
-            self.sock.send_multipart([identity, *protocol.encode(reply)])
+            reply = self.answer(protocol.decode(frames))
+            if reply is not None:
+                self.sock.send_multipart([identity, *protocol.encode(reply)])
+
+    def answer(self, msg):
+        """The reply to ``msg``, or None to lose it."""
+        if isinstance(msg, protocol.Hello):
+            return protocol.Metadata(id=msg.id, models={"toy-a": protocol.ModelInfo.from_wire(TOY_INFO)})
+        if msg.robot.endswith("-000"):  # robot 0 (by name: each client has a socket identity of its own)
+            self.answered += 1
+            return protocol.ErrorReply(id=msg.id, code=protocol.ErrorCode.UNAVAILABLE, message="no executor")
+        self.dropped += 1  # robot 1: the reply is lost
+        return None
 
     def close(self) -> None:
         self.stop.set()
@@ -110,21 +113,14 @@ class TwoModelRouter(HalfDeafRouter):
     """Describes toy-a (answered UNAVAILABLE) and toy-wide, whose 1025 cameras no request can carry (the SDK
     refuses to send one), and a third model no robot is spread to."""
 
-    def _serve(self) -> None:
-        wide = {**TOY_INFO, "cameras": [f"c{i}" for i in range(1025)], "image_shape": [1, 1, 3]}
-        while not self.stop.is_set():
-            if not self.sock.poll(50):
-                continue
-            identity, *frames = self.sock.recv_multipart(copy=True)
-            msg = protocol.decode(frames)
-            if isinstance(msg, protocol.Hello):
-                reply = protocol.Metadata(id=msg.id, models={
-                    "toy-a": protocol.ModelInfo.from_wire(TOY_INFO), "toy-wide": protocol.ModelInfo.from_wire(wide),
-                    "toy-z": protocol.ModelInfo.from_wire(TOY_INFO)})
-            else:
-                self.answered += 1
-                reply = protocol.ErrorReply(id=msg.id, code=protocol.ErrorCode.UNAVAILABLE, message="no executor")
-            self.sock.send_multipart([identity, *protocol.encode(reply)])
+    def answer(self, msg):
+        if isinstance(msg, protocol.Hello):
+            wide = {**TOY_INFO, "cameras": [f"c{i}" for i in range(1025)], "image_shape": [1, 1, 3]}
+            return protocol.Metadata(id=msg.id, models={
+                "toy-a": protocol.ModelInfo.from_wire(TOY_INFO), "toy-wide": protocol.ModelInfo.from_wire(wide),
+                "toy-z": protocol.ModelInfo.from_wire(TOY_INFO)})
+        self.answered += 1
+        return protocol.ErrorReply(id=msg.id, code=protocol.ErrorCode.UNAVAILABLE, message="no executor")
 
 
 def test_a_request_that_cannot_be_sent_fails_alone_and_idle_models_are_not_reported():
