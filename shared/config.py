@@ -103,6 +103,9 @@ def _seed(v: Any) -> bool:
 _ADDRESS_RE = re.compile(r"(tcp://(\*|\[[0-9A-Fa-f:.]+\]|[^:/\[\]\s]+):(\d+)|ipc://\S+|inproc://\S+)")
 
 
+# An executor's memory_gb at most (a petabyte): 1e300 overflowed the placement's byte count (a traceback).
+MAX_MEMORY_GB = 1_000_000
+
 # The traffic solve blocks every drain, resume and apply answer (and `robion ctl` waits that long): an hour is
 # far past any useful solve, and a bound keeps those waits something an operator can sit through.
 MAX_SOLVE_TIME_LIMIT_S = 3600
@@ -175,7 +178,8 @@ class ExecutorConfig:
     name: str
     models: list[str]
     device: str = "cpu"  # "cpu" or "cuda:N"
-    memory_gb: float | None = field(default=None, metadata=_check(positive_number, "expected a positive number"))
+    memory_gb: float | None = field(default=None, metadata=_check(
+        lambda v: positive_number(v) and v <= MAX_MEMORY_GB, f"expected a positive number of GiB, at most {MAX_MEMORY_GB}"))
     # device memory to plan with; checked against the models' estimated needs (see shared/placement.py)
     metrics_port: int | None = field(default=None, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
     # None: 9110 + the executor's position in this list

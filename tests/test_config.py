@@ -92,6 +92,8 @@ def test_defaults():
     # left the CLI an unusable timeout
     (lambda d: d.update(control={"solve_time_limit_s": 1e9}), "control.solve_time_limit_s: expected a positive number"),
     (lambda d: d.update(control={"solve_time_limit_s": 3600.5}), "control.solve_time_limit_s: expected a positive"),
+    # the placement's byte count overflowed (int(inf): a traceback from `robion plan` and every service)
+    (lambda d: d["executors"][0].update(memory_gb=1e300), "executors[0].memory_gb: expected a positive number"),
 ])
 def test_errors_name_their_path(mutate, message):
     data = base()

@@ -165,10 +165,11 @@ placement: mix
     assert {m: sum(row.values()) for m, row in data["assignment"].items()} == {"A": 6, "B": 2}
 
 
-@pytest.mark.parametrize("value", ["-1", "0", "nan"])
+@pytest.mark.parametrize("value", ["-1", "0", "nan", "inf", "3601"])
 def test_time_limit_that_is_not_positive_exit_2(tmp_path: Path, value: str) -> None:
     """A negative or NaN limit made CP-SAT refuse its own parameters (MODEL_INVALID); that was reported as
-    'no feasible assignment ... raise the time limit', exit 1, as if the planning file were the problem."""
+    'no feasible assignment ... raise the time limit', exit 1, as if the planning file were the problem.
+    `inf` never ended; the bound is the config's for control.solve_time_limit_s."""
     out = run_plan(tmp_path, PAPER, "--time-limit", value)
     assert out.returncode == 2, (out.returncode, out.stdout, out.stderr)
     assert "--time-limit" in out.stderr and "positive" in out.stderr, out.stderr

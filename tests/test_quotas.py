@@ -27,12 +27,23 @@ def test_full_limits_fill_both_gpus():
     assert q.limits == {"A": 4, "B": 4}
 
 
-def test_headroom_that_cannot_hold_the_robots_splits_evenly_and_says_so(caplog):
-    with caplog.at_level(logging.ERROR, logger="robion.control"):
+def test_headroom_that_cannot_hold_the_robots_plans_to_the_full_limits_and_says_so(caplog):
+    """No plan keeps 75% of each limit (3 + 3 robots a GPU for 8), but one within the limits themselves does:
+    it used to split evenly, which in general puts a GPU over its measured limit."""
+    with caplog.at_level(logging.WARNING, logger="robion.control"):
         q = assign(cluster(headroom=0.75), PLACEMENT)
+    assert q.result.strategy == "ip" and q.result.feasible
+    assert per_executor(q.robots) == {"ex0": 4, "ex1": 4}
+    assert q.limits == {"A": 4, "B": 4}  # the routing table keeps reporting the measured C_i
+    assert any("within headroom 0.75" in r.getMessage() and "short by" in r.getMessage() for r in caplog.records)
+
+
+def test_robots_beyond_the_full_limits_are_split_evenly_and_said_so(caplog):
+    with caplog.at_level(logging.ERROR, logger="robion.control"):
+        q = assign(cluster(limit=3, headroom=0.75), PLACEMENT)
     assert q.result.strategy == "eps"  # every robot still has a GPU
     assert q.robots == {"A": {"ex0": 3, "ex1": 3}, "B": {"ex0": 1, "ex1": 1}}
-    assert q.limits == {"A": 4, "B": 4}  # the routing table keeps reporting the measured C_i
+    assert q.limits == {"A": 3, "B": 3}
     assert any("infeasible" in r.getMessage() and "short by" in r.getMessage() for r in caplog.records)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import logging
 import random
 from fractions import Fraction
 
@@ -131,10 +132,14 @@ def test_large_coprime_limits_stay_exact() -> None:
     assert res.feasible and check_assignment(p2, res.assignment) == []
 
 
-def test_limits_too_heterogeneous_for_int64_are_refused() -> None:
+def test_limits_too_heterogeneous_for_int64_get_the_greedy_plan(caplog: pytest.LogCaptureFixture) -> None:
+    """The exact capacity constraint cannot be stated in int64; the greedy plan is checked exactly, so it is the
+    answer (this input used to be refused, and the control plane split evenly instead)."""
     p = make_problem(1, [("a", 2**31 - 1, 1, None), ("b", 2**31 - 2, 1, None)])
-    with pytest.raises(PlanInputError, match="least common multiple"):
-        solve(p)
+    with caplog.at_level(logging.WARNING):
+        res = solve(p)
+    assert res.feasible and res.source == "greedy" and res.assignment == {"a": {0: 1}, "b": {0: 1}}
+    assert any("least common multiple" in r.getMessage() for r in caplog.records)
 
 
 def test_infeasible_diagnosis_names_models_gpus_and_remedy() -> None:
@@ -243,13 +248,17 @@ def test_headroom_outside_unit_interval_is_refused(headroom: float) -> None:
 @pytest.mark.parametrize("gpus, limit, robots", [(8, 2**60, 2**62), (40, 2**58, 2**62), (1, 2**64, 2**64),
                                                  (2, 2**64, 2**65)],
                          ids=["sum-overflows-int64", "many-gpus", "domain-past-int64", "domain-past-int64-split"])
-def test_inputs_cp_sat_cannot_state_are_refused_with_a_reason(gpus: int, limit: int, robots: int) -> None:
+def test_inputs_cp_sat_cannot_state_get_the_greedy_plan(gpus: int, limit: int, robots: int,
+                                                        caplog: pytest.LogCaptureFixture) -> None:
     """Populations and limits whose sums (or bounds) pass int64 made CP-SAT answer MODEL_INVALID, reported
-    as a time-out ('raise the time limit'), or made OR-Tools raise a TypeError. They are a PlanInputError,
-    which the control plane answers with the even split (traffic.assign)."""
+    as a time-out ('raise the time limit'), or made OR-Tools raise a TypeError. The integer program is not
+    built for them; the greedy plan (exact arithmetic) is returned, and the reason logged."""
     p = make_problem(gpus, [("a", limit, robots, None)])
-    with pytest.raises(PlanInputError, match="int64"):
-        solve(p, time_limit_s=5)
+    with caplog.at_level(logging.WARNING):
+        res = solve(p, time_limit_s=5)
+    assert res.feasible and res.source == "greedy" and not check_assignment(p, res.assignment)
+    assert sum(res.assignment["a"].values()) == robots
+    assert any("int64" in r.getMessage() for r in caplog.records)
 
 
 @pytest.mark.parametrize("time_limit_s", [-1.0, 0.0, float("nan")])
@@ -418,3 +427,23 @@ def test_large_infeasible_problems_are_diagnosed_quickly() -> None:
     res = solve(p, "ip", time_limit_s=2)
     assert res.status == "infeasible" and res.diagnosis
     assert time.perf_counter() - t < 4
+
+
+def test_a_tight_partial_placement_where_the_greedy_plan_sticks_still_gets_a_plan() -> None:
+    """The greedy plan gets stuck on this feasible instance, and CP-SAT's search with the objective found no
+    plan within the limit ("unknown"), so the control plane split robots evenly, up to 1.59x a GPU's limit.
+    A first search for any plan (no objective) finds one in milliseconds."""
+    p = bench_instance(30, 34, "partial", 11)
+    res = solve(p, "ip", time_limit_s=2.0)
+    assert res.assignment and res.feasible and not check_assignment(p, res.assignment), res.diagnosis
+    assert res.source == "cp-sat"
+
+
+def test_limits_whose_lcm_overflows_still_get_the_greedy_plan() -> None:
+    """Sixteen co-hosted models with coprime limits: the exact capacity constraint overflows int64, and the
+    integer program refused the input although the greedy plan (checked exactly) was within the limits."""
+    primes = [101, 103, 107, 109, 113, 127, 131, 137, 139, 149, 151, 157, 163, 167, 173, 179]
+    p = make_problem(4, [(f"m{i}", c, c // 4, None) for i, c in enumerate(primes)])
+    res = solve(p, "ip", time_limit_s=2.0)
+    assert res.feasible and res.source == "greedy" and not check_assignment(p, res.assignment)
+    assert sum(sum(per.values()) for per in res.assignment.values()) == sum(c // 4 for c in primes)

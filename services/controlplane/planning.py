@@ -17,13 +17,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 
-from shared.config import ClusterConfig, ConfigError, ControlConfig, config_from_dict, parse_yaml
+from shared.config import (MAX_SOLVE_TIME_LIMIT_S, ClusterConfig, ConfigError, ControlConfig, config_from_dict, parse_yaml,
+                           solve_time_limit)
 
 from services.controlplane.solver import (
     DEFAULT_TIME_LIMIT_S,
@@ -196,13 +198,15 @@ def _summary(result: PlanResult) -> str:
 
 
 def _time_limit(text: str) -> float:
-    """--time-limit: seconds, positive (CP-SAT answers MODEL_INVALID to a negative or NaN limit)."""
+    """--time-limit: seconds, positive (CP-SAT answers MODEL_INVALID to a negative or NaN limit) and at most
+    what the config allows control.solve_time_limit_s (`inf` never ended)."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+        value = math.nan
+    if not solve_time_limit(value):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, at most {MAX_SOLVE_TIME_LIMIT_S}, "
+                                         f"got {text!r}")
     return value
 
 

@@ -60,6 +60,9 @@ _MAX_IP_VARS_PER_S = 2000
 # Above this many pairs CP-SAT's symmetry detection is off (see solve_ip).
 _SYMMETRY_MAX_VARS = 1024
 
+# Share of the seconds left that a search for any plan gets when the greedy plan is stuck (see _first_plan).
+_FIRST_PLAN_SHARE = 0.25
+
 # Below this many seconds left of the time limit CP-SAT is not started: it could not even
 # finish presolve, and the greedy plan (if any) is what it would return anyway.
 _MIN_SOLVE_S = 0.05
@@ -628,8 +631,8 @@ def _check_statable(problem: PlanProblem, hosted: Mapping[int, list[int]]) -> in
     """Raise PlanInputError where the integer program cannot be stated in int64; else the largest
     |2 x objective (3)| its terms can reach (CP-SAT refuses an objective past int64).
 
-    solve_ip checks this before it may return the greedy plan, so such inputs are refused whatever
-    that plan is (the control plane then splits evenly, see traffic.assign)."""
+    solve_ip returns the greedy plan where it has one, and refuses such inputs only without one (the
+    control plane then splits evenly, see traffic.assign)."""
     for m in problem.models:
         # Constraint (1) sums one variable of bound min(N_i, C_i) per host: past int64 OR-Tools raises
         # a TypeError (a bound itself too large) or CP-SAT refuses the model as MODEL_INVALID.
@@ -826,6 +829,7 @@ def solve_ip(
         raise PlanInputError("time_limit_s", f"expected a positive number of seconds, got {time_limit_s!r}")
     deadline = start + float(time_limit_s)
     greedy = _greedy(problem)
+    start_source = "greedy"  # where the plan CP-SAT starts from came from
     if greedy is None:
         # A valid greedy plan proves the problem feasible; only without one is the capacity check worth its time.
         diag = diagnose_capacity(problem)
@@ -835,10 +839,10 @@ def solve_ip(
     def fallback(reason: str, bound: int = 0) -> PlanResult:
         """The greedy plan when CP-SAT has none at least as good; 'unknown' without one. 0 always bounds (3)."""
         if greedy is not None:
-            log.debug("ip: returning the greedy plan (%s)", reason)
+            log.debug("ip: returning the %s plan (%s)", start_source, reason)
             optimal = objective_value(problem, greedy) <= bound
             return _finish(problem, "ip", greedy, start, optimal=optimal, status="optimal" if optimal else "feasible",
-                           best_bound=bound, source="greedy")
+                           best_bound=bound, source=start_source)
         msg = (
             f"no feasible assignment found within the {time_limit_s:g}s time limit ({reason}); "
             "the problem may still be feasible: raise the time limit."
@@ -846,7 +850,16 @@ def solve_ip(
         return PlanResult("ip", {}, None, False, False, "unknown", time.perf_counter() - start, msg, bound)
 
     hosted = _hosted(problem)
-    obj_bound = _check_statable(problem, hosted)
+    try:
+        obj_bound = _check_statable(problem, hosted)
+    except PlanInputError as exc:
+        if greedy is None:
+            raise
+        # The greedy plan is checked exactly (fractions), so it stands where the integer program cannot be
+        # stated in int64 (co-hosted limits whose least common multiple overflows): the even split that the
+        # control plane used instead puts GPUs over their limits.
+        log.warning("ip: %s; returning the greedy plan", exc)
+        return fallback(f"the integer program cannot be stated: {exc}")
     if greedy is not None and plan_key(problem, greedy) == (0, _min_pairs(problem)):
         # Nothing can beat it on either term: every GPU serves one model, each model on as few GPUs as it can.
         return fallback("optimal by construction")
@@ -859,6 +872,12 @@ def solve_ip(
         ip = _build_ip(problem, hosted, obj_bound, deadline)
     except _OutOfTime:
         return fallback("the time limit passed while building the integer program")
+    if greedy is None:
+        # The greedy plan gets stuck on tight partial placements. A search for any plan (the constraints
+        # without the objective) finds one there in milliseconds, where the full model's search can end
+        # the time limit with none, and the control plane then split robots evenly, over the GPUs' limits.
+        greedy = _first_plan(problem, ip, deadline, random_seed)
+        start_source = "cp-sat"
     if greedy is not None:
         _add_hint(problem, ip, greedy)
     remaining = deadline - time.perf_counter()
@@ -898,6 +917,30 @@ def solve_ip(
     optimal = objective_value(problem, assignment) <= bound
     return _finish(problem, "ip", assignment, start, optimal=optimal, status="optimal" if optimal else "feasible",
                    best_bound=bound, source="cp-sat")
+
+
+def _first_plan(problem: PlanProblem, ip: _IpModel, deadline: float,
+                random_seed: int) -> dict[str, dict[int, int]] | None:
+    """Any plan within the limits: CP-SAT on the constraints of ``ip`` without its objective, stopped at the
+    first solution, for at most _FIRST_PLAN_SHARE of the time left. None when it finds none in that time."""
+    remaining = deadline - time.perf_counter()
+    if remaining < 2 * _MIN_SOLVE_S:
+        return None
+    mdl = ip.mdl.clone()  # the same variables, by index, so ip.r reads the solution
+    mdl.clear_objective()
+    solver = cp_model.CpSolver()
+    _cp_sat_parameters(solver, remaining * _FIRST_PLAN_SHARE, 1, random_seed)
+    solver.parameters.stop_after_first_solution = True
+    status = solver.solve(mdl)
+    log.debug("CP-SAT first plan: %s in %.3fs", solver.status_name(status), solver.wall_time)
+    if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
+        return None
+    plan: dict[str, dict[int, int]] = {m.name: {} for m in problem.models}
+    for (i, j), v in ip.r.items():
+        plan[problem.models[i].name][j] = int(solver.value(v))
+    if check_assignment(problem, plan):  # would be a formulation bug; never hand out an overload
+        raise AssertionError(f"CP-SAT returned an invalid assignment: {check_assignment(problem, plan)}")
+    return plan
 
 
 def solve(

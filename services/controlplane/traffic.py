@@ -55,17 +55,24 @@ def assign(cfg: ClusterConfig, placement: dict[str, list[str]], measured: dict[s
     if not planned:
         return Quotas({}, {})
     try:
-        problem = with_headroom(PlanProblem(len(executors), tuple(
-            ModelDemand(m.name, limit[m.name], m.robots, tuple(hosts[m.name])) for m in planned)),
-            cfg.control.headroom)
+        full = PlanProblem(len(executors), tuple(
+            ModelDemand(m.name, limit[m.name], m.robots, tuple(hosts[m.name])) for m in planned))
+        problem = with_headroom(full, cfg.control.headroom)
     except PlanInputError as exc:
         log.error("cannot plan the traffic: %s", exc)
         return Quotas({}, {})
     try:
         result = solve(problem, cfg.control.strategy, time_limit_s=cfg.control.solve_time_limit_s)
+        if not result.assignment and problem != full:
+            # No plan keeps the headroom's slack: one within the measured limits themselves still beats the
+            # even split below, which can put a GPU far over its limit.
+            log.warning("no traffic assignment within headroom %g of the robot limits (%s); planning to the "
+                        "full limits", cfg.control.headroom, result.diagnosis)
+            result = solve(full, cfg.control.strategy, time_limit_s=cfg.control.solve_time_limit_s)
     except PlanInputError as exc:
         # Limits the integer program cannot state exactly (e.g. their least common multiple
-        # overflows int64): the even split needs no such arithmetic and still gives every robot a GPU.
+        # overflows int64) and no greedy plan: the even split needs no such arithmetic and still gives
+        # every robot a GPU.
         log.error("cannot solve the traffic assignment: %s; splitting robots evenly instead", exc)
         result = solve(problem, "eps")
     if not result.assignment:
