@@ -184,9 +184,10 @@ def _summary(result: PlanResult) -> str:
     parts = [f"strategy: {result.strategy}", f"objective: {result.objective}"]
     if result.strategy == "ip":
         if result.source == "greedy":
-            # Returned because CP-SAT had nothing at least as good within the time limit (or, when proven
-            # optimal, because nothing can beat it); worth saying either way.
-            parts.append("greedy plan" if result.optimal else "greedy plan (CP-SAT found none better in time)")
+            # Returned because CP-SAT had nothing at least as good within the time limit, was not run (an
+            # integer program too large for the time left, or not statable in int64), or, when proven
+            # optimal, because nothing can beat it; worth saying either way.
+            parts.append("greedy plan" if result.optimal else "greedy plan (none better from CP-SAT)")
         if result.optimal:
             parts.append("proven optimal")
         else:
