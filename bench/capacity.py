@@ -133,6 +133,19 @@ def source_commit(short: bool = False) -> str | None:
     return os.environ.get("ROBION_COMMIT") or _git("rev-parse", *(["--short"] if short else []), "HEAD")
 
 
+def dirty() -> bool | None:
+    """Whether the measured tree differs from its commit; None when that cannot be told.
+
+    A copy shipped with ROBION_COMMIT names its state in ROBION_DIRTY (1 or 0): its own .git, if any, need
+    not match the tree. Without git, None: a copy whose state is unknown is not recorded as clean.
+    """
+    if os.environ.get("ROBION_COMMIT"):
+        flag = os.environ.get("ROBION_DIRTY")
+        return None if flag is None else flag not in ("", "0")
+    status = _git("status", "--porcelain", "--untracked-files=no")
+    return None if status is None else bool(status)
+
+
 def meta(device: str) -> dict:
     import torch
 
@@ -143,7 +156,7 @@ def meta(device: str) -> dict:
         "gpu": gpu, "device": device, "cpu": platform.processor() or platform.machine(), "host": platform.node(),
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "commit": source_commit(),
-        "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
+        "dirty": dirty(),
         "command": " ".join([os.path.relpath(sys.argv[0], ROOT) if sys.argv[0] else "bench/capacity.py",
                              *sys.argv[1:]]),
         "python": platform.python_version(), "torch": torch.__version__,
@@ -162,16 +175,28 @@ class Report:
         self.path = path
         self.doc: dict = {"schema": SCHEMA, "target": settings["target"], "capacity": {}, "complete": {},
                           "ratios": {}, "deadlines_ms": {}, "curves": {}, "settings": settings, "meta": meta_}
+        self._fresh: set[str] = set()  # models this run has measured a point of
         if merge and path is not None and path.exists():
             old = json.loads(path.read_text())
             if old.get("schema") != SCHEMA:
                 raise SystemExit(f"--merge: {path} is not a {SCHEMA} file")
+            if old.get("target") != settings["target"]:
+                # One top-level target: the kept models' capacities would read as measured at this run's.
+                raise SystemExit(f"--merge: {path} holds capacities at target {old.get('target')}, this run "
+                                 f"measures at {settings['target']}; write another file")
             for key in ("capacity", "complete", "ratios", "deadlines_ms", "curves", "overlap_bound"):
                 self.doc[key] = old.get(key, {})
             # Settings and meta of earlier runs stay with the models they measured (settings.models).
             self.doc["runs"] = [*old.get("runs", []), {"settings": old.get("settings"), "meta": old.get("meta")}]
 
     def point(self, model: str, engine: str, point: Point) -> None:
+        if model not in self._fresh:
+            # A model measured again replaces its earlier results as a whole, from its first point on: an
+            # interrupted rerun must not leave new points on the old curves beside the old capacities. (Its
+            # deadline and overlap bound are this run's already: written before its first point.)
+            self._fresh.add(model)
+            for key in ("capacity", "complete", "ratios", "curves"):
+                self.doc.get(key, {}).pop(model, None)
         self.doc["curves"].setdefault(model, {}).setdefault(engine, []).append(_point_dict(point))
         self.doc["complete"].setdefault(model, {})[engine] = False
         self.write()
@@ -250,9 +275,13 @@ def plot(doc: dict, path: Path) -> bool:
     for j, model in enumerate(models):
         ax_slo, ax_p99 = axes[0][j], axes[1][j]
         for engine, pts in doc["curves"][model].items():
-            best: dict[int, dict] = {}  # a count measured twice (screened, then in full): the longer run
+            # A count measured twice (screened, then in full): the full run, whose verdict the search took,
+            # even where it stopped early after as few epochs as screening ran; else the longer run.
+            best: dict[int, dict] = {}
             for pt in pts:
-                if pt["robots"] not in best or pt["epochs"] > best[pt["robots"]]["epochs"]:
+                rank = (not pt.get("screened", False), pt["epochs"])
+                old = best.get(pt["robots"])
+                if old is None or rank > (not old.get("screened", False), old["epochs"]):
                     best[pt["robots"]] = pt
             pts = sorted(best.values(), key=lambda p: p["robots"])
             xs = [p["robots"] for p in pts]

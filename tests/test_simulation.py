@@ -463,3 +463,72 @@ def test_cli_meta_names_the_shipped_commit_and_replot_needs_a_png(tmp_path, monk
         bench_capacity.main(["--replot", str(doc), "--plot", str(tmp_path / "x.png")])
     with pytest.raises(SystemExit, match="--models is required"):
         bench_capacity.main([])
+
+
+def test_a_merged_rerun_replaces_a_model_from_its_first_point_and_keeps_one_target(tmp_path):
+    """An interrupted merged rerun left its new points on the old curve, beside the old capacities; and models
+    kept from a run at another target were listed under this run's target."""
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+    from services.executor.simulation import CapacityResult, Point
+
+    def point(robots: int, epochs: int) -> Point:
+        return Point(robots=robots, slo_attainment=1.0, p50_ms=1.0, p99_ms=2.0, passed=True, epochs=epochs, sent=1,
+                     misses=0, errors={}, no_reply=0, submit_lag_max_ms=0.0, wall_s=0.1)
+
+    path = tmp_path / "cap.json"
+    first = bench_capacity.Report(path, {"target": 0.98}, {}, merge=False)
+    first.point("toy", "robion", point(12, 5))
+    first.point("other", "robion", point(3, 5))
+    first.model_done("toy", {"robion": CapacityResult("toy", "robion", 0.98, "search", 12, [], [])}, None)
+    first.model_done("other", {"robion": CapacityResult("other", "robion", 0.98, "search", 3, [], [])}, None)
+    again = bench_capacity.Report(path, {"target": 0.98}, {}, merge=True)
+    again.point("toy", "robion", point(1, 1))
+    doc = json.loads(path.read_text())  # as an interruption here would leave it
+    assert [p["robots"] for p in doc["curves"]["toy"]["robion"]] == [1]
+    assert "toy" not in doc["capacity"] and doc["capacity"]["other"] == {"robion": 3}
+    with pytest.raises(SystemExit, match="target 0.98"):
+        bench_capacity.Report(path, {"target": 0.9}, {}, merge=True)
+
+
+def test_meta_does_not_call_an_unknown_tree_clean(tmp_path, monkeypatch):
+    """Without git (a copy of the tree shipped without .git) the tree's state is unknown: it was recorded as
+    clean, and an edited copy read as a clean build of the commit ROBION_COMMIT names."""
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+
+    monkeypatch.setattr(bench_capacity, "_git", lambda *args: None)
+    assert bench_capacity.meta("cpu")["dirty"] is None
+    monkeypatch.setenv("ROBION_COMMIT", "0123abcd")
+    assert bench_capacity.meta("cpu")["dirty"] is None
+    monkeypatch.setenv("ROBION_DIRTY", "1")
+    assert bench_capacity.meta("cpu")["dirty"] is True
+    monkeypatch.setenv("ROBION_DIRTY", "0")
+    assert bench_capacity.meta("cpu")["dirty"] is False
+
+
+def test_the_plot_shows_a_counts_full_run_over_its_screening(tmp_path, monkeypatch):
+    """A full run stopped early after one epoch tied with the one-epoch screening point of the same count, and
+    the plot kept the screening pass where the search had taken the full run's failure."""
+    pytest.importorskip("matplotlib")
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+    import matplotlib.axes
+
+    drawn = []
+    real = matplotlib.axes.Axes.plot
+
+    def spy(self, *args, **kwargs):
+        if kwargs.get("label", "").startswith("robion"):
+            drawn.append((list(args[0]), list(args[1])))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot", spy)
+
+    def pt(robots, slo, epochs, screened):
+        return {"robots": robots, "slo_attainment": slo, "p99_ms": 10.0, "epochs": epochs, "screened": screened}
+
+    doc = {"target": 0.98, "capacity": {"toy": {"robion": 8}}, "curves": {"toy": {"robion": [
+        pt(8, 0.99, 5, False), pt(9, 0.985, 1, True), pt(9, 0.85, 1, False)]}}}
+    assert bench_capacity.plot(doc, tmp_path / "p.png")
+    assert drawn[0] == ([8, 9], [99.0, 85.0])  # the SLO panel (the p99 panel follows)
