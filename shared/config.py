@@ -422,7 +422,10 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
     from shared.models.registry import architectures
 
     import_modules(cfg.imports, folder)
-    archs = architectures()
+    try:
+        archs = architectures()
+    except ImportError as exc:  # a bad $ROBION_IMPORTS entry: one line and exit 2, like a bad `imports`
+        raise ConfigError(str(exc)) from None
     if not cfg.models:
         raise ConfigError("models: at least one model is needed")
     seen = _unique_names([m.name for m in cfg.models], "models")

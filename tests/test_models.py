@@ -190,3 +190,63 @@ def test_user_module_taking_a_builtin_name_is_a_config_error(tmp_path):
     assert out.returncode == 0, out.stderr
     assert ("ConfigError: imports[0]: cannot import 'takes_pi0' (ValueError: architecture 'pi0' is already "
             "registered (by shared.models.pi0))") in out.stdout
+
+
+class _Tied(VLAModel):
+    """A user's model with an init of its own and tied weights (head.weight is embed.weight)."""
+
+    CONFIGS = {"tiny": 8}
+
+    def __init__(self, width: int):
+        super().__init__()
+        self.io = ModelIO(cameras=("base",), image_shape=(8, 8, 3), state_dim=4, prompt_len=4, horizon=3,
+                          action_dim=2, steps=2)
+        self.embed = torch.nn.Embedding(16, width)
+        self.head = torch.nn.Linear(width, 16, bias=False)
+        self.head.weight = self.embed.weight
+
+    def init_weights(self, generator: torch.Generator) -> None:
+        with torch.no_grad():
+            self.embed.weight.normal_(generator=generator)
+
+
+class _NeedsRealValues(VLAModel):
+    """A constructor that reads a value (a drop-path schedule as timm builds it): impossible on the meta device."""
+
+    CONFIGS = {"tiny": 4}
+
+    def __init__(self, depth: int):
+        super().__init__()
+        self.io = ModelIO(cameras=("base",), image_shape=(8, 8, 3), state_dim=4, prompt_len=4, horizon=3,
+                          action_dim=2, steps=2)
+        self.rates = [x.item() for x in torch.linspace(0, 0.1, depth)]
+        self.proj = torch.nn.Linear(4, 4)
+
+    def init_weights(self, generator: torch.Generator) -> None:
+        with torch.no_grad():
+            self.proj.weight.normal_(generator=generator)
+
+
+def test_tied_weights_stay_tied_and_meta_hostile_constructors_still_build():
+    """A model built on the meta device and materialised with to_empty lost its tied weights (two tensors,
+    initialised apart); a constructor that cannot run on the meta device failed inside build_model."""
+    register("test_tied")(_Tied)
+    register("test_needs_real_values")(_NeedsRealValues)
+    try:
+        m = build_model("test_tied", "tiny", seed=1)
+        assert m.head.weight is m.embed.weight and m.embed.weight.abs().max() > 0
+        a, b = (build_model("test_needs_real_values", "tiny", seed=2) for _ in range(2))
+        assert len(a.rates) == 4 and torch.equal(a.proj.weight, b.proj.weight)  # same seed, same weights
+    finally:
+        _ARCHS.pop("test_tied", None)
+        _ARCHS.pop("test_needs_real_values", None)
+
+
+def test_register_misuse_is_refused_where_it_happens():
+    """`@register` without a name turned the class into a function and registered nothing; the mistake surfaced
+    later as "unknown architecture"."""
+    with pytest.raises(TypeError, match=r"use @register\(\"my_vla\"\)"):
+        register(_Tied)
+    with pytest.raises(TypeError, match="needs a VLAModel subclass"):
+        register("test_not_a_vla")(torch.nn.Linear)
+    assert "test_not_a_vla" not in _ARCHS

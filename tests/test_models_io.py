@@ -149,7 +149,7 @@ def test_weights_errors(tmp_path):
     # A cast would turn these into weights: integers, and a value beyond float32 (inf), or a NaN.
     ints = dict(sd, **{"dit.sink": torch.ones_like(sd["dit.sink"], dtype=torch.int32)})
     save_file(ints, str(tmp_path / "ints.safetensors"))
-    with pytest.raises(WeightsError, match=r"cannot hold floating-point weights: dit.sink: file I32 vs model float32"):
+    with pytest.raises(WeightsError, match=r"cannot hold the model's values: dit.sink: file I32 vs model float32"):
         load_weights(m, str(tmp_path / "ints.safetensors"))
     for bad_value in (1e39, float("nan")):
         huge = dict(sd, **{"dit.sink": torch.full(sd["dit.sink"].shape, bad_value, dtype=torch.float64)})
@@ -216,3 +216,71 @@ def test_models_cli_names_what_it_cannot_list(capsys, monkeypatch):
     finally:
         _ARCHS.pop("test_meta_hostile", None)
         _ARCHS.pop("test_tiny_only", None)
+
+
+def test_real_tokenizer_edge_cases_are_caught_at_load(tmp_path):
+    """Three ways a tokenizer.json loaded without complaint and then served wrong prompts."""
+    tokenizers = pytest.importorskip("tokenizers")
+    from tokenizers.models import WordLevel
+    from tokenizers.pre_tokenizers import Whitespace
+
+    def saved(vocab: dict, name: str, padding: bool = False) -> str:
+        t = tokenizers.Tokenizer(WordLevel(vocab, unk_token="<unk>"))
+        t.pre_tokenizer = Whitespace()
+        if padding:
+            t.enable_padding(length=6, pad_id=1, pad_token="<unk>")
+        path = str(tmp_path / name)
+        t.save(path)
+        return path
+
+    # ids with gaps: 4 entries but id 600, past a 512-id vocabulary (the embedding raised IndexError per request)
+    with pytest.raises(ValueError, match="vocabulary"):
+        PromptTokenizer(6, 512, path=saved({"<pad>": 0, "<unk>": 1, "pick": 5, "cup": 600}, "gaps.json"))
+    # a file saved with padding of its own filled prompts with its pad id, read by the model as text
+    tok = PromptTokenizer(8, 100, path=saved({"<pad>": 0, "<unk>": 1, "pick": 2, "up": 3}, "padded.json", True))
+    assert tok("pick up").tolist() == [2, 3, 0, 0, 0, 0, 0, 0]
+    # the model's pad id is real text here ("!" is id 0, as in Qwen's vocabulary): every "!" would be masked out
+    with pytest.raises(ValueError, match="masked out"):
+        PromptTokenizer(6, 100, path=saved({"!": 0, "<unk>": 1, "stop": 2}, "bang.json"))
+
+
+def test_a_sentencepiece_model_whose_pad_id_is_text_is_refused(tmp_path):
+    spm = pytest.importorskip("sentencepiece")
+    lines = ["pick up the red cup", "open the top drawer"] * 20
+    spm.SentencePieceTrainer.train(sentence_iterator=iter(lines), model_prefix=str(tmp_path / "sp"), vocab_size=11,
+                                   model_type="word", minloglevel=2)  # defaults: unk 0, bos 1, eos 2, no pad
+    with pytest.raises(ValueError, match="masked out"):
+        PromptTokenizer(8, 100, path=tmp_path / "sp.model")
+
+
+def test_qwen_based_models_pad_with_qwens_pad_token():
+    """Qwen's id 0 is "!"; its pad token <|endoftext|> is 151643. GR00T N1.5 and XR0 padded with 0."""
+    from shared.models.groot_n15 import GR00TN15
+    from shared.models.xr0 import XR0
+
+    assert XR0.CONFIGS["full"].pad_id == 151643 < XR0.CONFIGS["full"].vocab
+    assert GR00TN15.CONFIGS["full"].pad_id == 151643 < GR00TN15.CONFIGS["full"].vocab
+
+
+def test_integer_and_boolean_tensors_take_only_their_kind_from_a_file(tmp_path):
+    """Float data for an index or a mask was cast silently: 3.99 became 3, NaN became -2**63, 0.1 became True."""
+    from safetensors.torch import save_file
+
+    class Indexed(torch.nn.Module):
+        arch = "indexed"
+
+        def __init__(self):
+            super().__init__()
+            self.register_buffer("index", torch.arange(4))
+            self.register_buffer("keep", torch.ones(4, dtype=torch.bool))
+
+    m = Indexed()
+    save_file({"index": torch.tensor([0.9, 1.5, float("nan"), 3.99], dtype=torch.float64),
+               "keep": torch.tensor([0.1, 0.0, -3.0, 0.0])}, str(tmp_path / "floats.safetensors"))
+    with pytest.raises(WeightsError, match="index: file F64 vs model int64.*keep: file F32 vs model bool"):
+        load_weights(m, str(tmp_path / "floats.safetensors"))
+    assert m.index.tolist() == [0, 1, 2, 3] and m.keep.all()  # unchanged
+    save_file({"index": torch.tensor([3, 2, 1, 0], dtype=torch.int32), "keep": torch.tensor([True, False] * 2)},
+              str(tmp_path / "ints.safetensors"))
+    load_weights(m, str(tmp_path / "ints.safetensors"))
+    assert m.index.tolist() == [3, 2, 1, 0] and m.keep.tolist() == [True, False, True, False]

@@ -64,6 +64,17 @@ def test_a_module_that_cannot_be_imported_is_a_config_error(tmp_path):
         load_config(path)
 
 
+def test_a_bad_robion_imports_entry_is_a_config_error_for_a_service(tmp_path):
+    """$ROBION_IMPORTS is read with a config too; a module it names that cannot be imported crashed the service
+    with a traceback instead of one line and exit 2."""
+    path = user_config(tmp_path, "my_vla_env")
+    env = {**os.environ, "ROBION_IMPORTS": "no_such_module_here", "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
+    res = subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0"],
+                         capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert "ROBION_IMPORTS: cannot import 'no_such_module_here'" in res.stderr
+
+
 def test_robion_models_lists_the_modules_named_in_robion_imports(tmp_path):
     (tmp_path / "my_vla_listed.py").write_text(docs_example())
     env = {**os.environ, "ROBION_IMPORTS": "my_vla_listed", "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}

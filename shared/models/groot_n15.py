@@ -48,7 +48,9 @@ class GR00TConfig:
     mlp: int = 6144
     vocab: int = 151680
     prompt_len: int = 48  # unverified
-    pad_id: int = 0
+    # Qwen's <|endoftext|>, its tokenizer's pad token. Its id 0 is "!": a prompt mask of `tokens != 0` would drop
+    # every "!" of a real prompt. (The byte-level fallback's ids stay below 258.)
+    pad_id: int = 151643
     rope_theta: float = 1000000.0
     adapter_layers: int = 4
     adapter_heads: int = 32  # x 64
@@ -138,7 +140,7 @@ class GR00TN15(VLAModel):
         "full": GR00TConfig(),
         "tiny": GR00TConfig(image_size=32, vit_size=32, patch=8, vit_width=32, vit_depth=2, vit_heads=2, vit_mlp=64,
                             width=64, depth=2, heads=4, kv_heads=2, head_dim=16, mlp=128, vocab=512, prompt_len=8,
-                            adapter_layers=2, adapter_heads=4, adapter_ff=128, dit_layers=4, dit_width=48,
+                            pad_id=0, adapter_layers=2, adapter_heads=4, adapter_ff=128, dit_layers=4, dit_width=48,
                             dit_heads=4, dit_ff=96, dit_out=40, future_tokens=4, max_seq_len=16, embodiments=3,
                             embodiment_id=1, embodiment_hidden=40, time_freqs=16, state_dim=8, action_dim=7,
                             horizon=5, steps=3),

@@ -23,7 +23,15 @@ def register(name: str):
     in the module that registers it.
     """
 
+    if not isinstance(name, str) or not name:
+        # `@register` without a name passed the class as the name and returned `wrap` in its place: the class
+        # became a function, and the failure surfaced later as "unknown architecture".
+        raise TypeError(f"register takes the architecture's name: use @register(\"my_vla\"), "
+                        f"got {type(name).__name__}")
+
     def wrap(cls: type[VLAModel]) -> type[VLAModel]:
+        if not (isinstance(cls, type) and issubclass(cls, VLAModel)):
+            raise TypeError(f"@register({name!r}) needs a VLAModel subclass, got {cls!r}")
         if cls.__module__ not in BUILTIN_MODULES:
             # The built-ins first: a user's module imported before them could otherwise take "pi0", and the
             # clash would surface later as an error inside shared/models/pi0.py, blaming the wrong module.
@@ -67,9 +75,13 @@ def build_model(arch: str, size: str = "tiny", seed: int = 0, device: str | torc
     if dtype is None:
         dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
     generator = torch.Generator(device).manual_seed(seed)
-    with torch.device("meta"):
-        model = cls(configs[size])
-    if type(model).init_weights is not VLAModel.init_weights and next(model.buffers(), None) is None:
+    try:
+        with torch.device("meta"):
+            model = cls(configs[size])
+    except Exception:  # a constructor that needs real values (e.g. `.item()` of a drop-path schedule)
+        model = None
+    if (model is not None and type(model).init_weights is not VLAModel.init_weights
+            and next(model.buffers(), None) is None and not _shares_parameters(model)):
         # Its own init sets every parameter: build on the meta device and materialise straight in the target
         # dtype on the target device, so a 4.7 B-parameter model never exists as fp32 on the host.
         model = model.to(dtype=dtype).to_empty(device=device)
@@ -77,7 +89,8 @@ def build_model(arch: str, size: str = "tiny", seed: int = 0, device: str | torc
         # Memory from to_empty is uninitialised, and only a constructor knows how to fill what the default
         # init (reset_parameters) does not reach: buffers, bare nn.Parameters, layers such as
         # nn.MultiheadAttention that initialise in _reset_parameters. Such a model is constructed for real,
-        # on its device under the seed (same seed, same weights), then cast.
+        # on its device under the seed (same seed, same weights), then cast. So is one whose constructor cannot
+        # run on the meta device, and one with tied parameters (to_empty gives each name a tensor of its own).
         devices = [device.index] if device.type == "cuda" else []
         with torch.random.fork_rng(devices=devices), torch.device(device):
             torch.manual_seed(seed)
@@ -85,6 +98,12 @@ def build_model(arch: str, size: str = "tiny", seed: int = 0, device: str | torc
         model = model.to(dtype=dtype)
     model.init_weights(generator)
     return model.eval().requires_grad_(False)
+
+
+def _shares_parameters(model: torch.nn.Module) -> bool:
+    """Whether one parameter is reachable under two names (tied weights)."""
+    return len({id(p) for _, p in model.named_parameters(remove_duplicate=False)}) < sum(
+        1 for _ in model.named_parameters(remove_duplicate=False))
 
 
 def build_meta(arch: str, size: str = "full") -> VLAModel:

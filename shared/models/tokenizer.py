@@ -66,7 +66,16 @@ class PromptTokenizer:
                 tok = Tokenizer.from_file(path)
             except Exception as e:  # the library raises a bare Exception for a file it cannot parse
                 raise ValueError(f"cannot load tokenizer {path}: {e}") from None
-            size = tok.get_vocab_size()
+            # Padding and truncation are ours (to prompt_len, with the model's pad id): a file saved with its own
+            # would fill prompts with its pad id, which the model then reads as text.
+            tok.no_padding()
+            tok.no_truncation()
+            # The largest id, not the entry count: a vocabulary with gaps has ids past its size.
+            size = max(tok.get_vocab(with_added_tokens=True).values(), default=-1) + 1
+            pad = tok.id_to_token(self.pad_id)
+            specials = {i for i, added in tok.get_added_tokens_decoder().items() if added.special}
+            if pad is not None and self.pad_id not in specials and "pad" not in pad.lower():
+                self._pad_clash(path, pad)
             encode = lambda text: tok.encode(text).ids  # noqa: E731
         elif path.endswith(".model"):
             try:
@@ -79,12 +88,19 @@ class PromptTokenizer:
             except RuntimeError as e:  # "could not parse ModelProto": not a sentencepiece model
                 raise ValueError(f"cannot load tokenizer {path}: {e}") from None
             size = sp.get_piece_size()
+            if self.pad_id < size and not sp.is_control(self.pad_id):
+                self._pad_clash(path, sp.id_to_piece(self.pad_id))
             encode = lambda text: [sp.bos_id()] * (sp.bos_id() >= 0) + sp.encode(text)  # noqa: E731
         else:
             raise ValueError(f"unknown tokenizer format {path!r}: expected a tokenizers .json or a sentencepiece .model")
         if size > self.vocab_size:
             raise ValueError(f"tokenizer {path} has {size} ids but the model's vocabulary has {self.vocab_size}")
         return encode
+
+    def _pad_clash(self, path: str, token: str) -> None:
+        # The models mask prompt positions by `ids != pad_id`: a pad id that is also text would drop that text.
+        raise ValueError(f"tokenizer {path}: id {self.pad_id}, the model's pad id, is the token {token!r}, not a "
+                         f"pad or special token: every {token!r} in a prompt would be masked out as padding")
 
     # -- API
 

@@ -23,6 +23,7 @@ class WeightsError(ValueError):
 
 # safetensors dtype names of floating-point tensors (the file's header, as get_slice().get_dtype() gives it).
 FLOAT_DTYPES = {"F64", "F32", "F16", "BF16", "F8_E4M3", "F8_E5M2"}
+INT_DTYPES = {"I64", "I32", "I16", "I8", "U64", "U32", "U16", "U8"}
 
 
 def _names(names: list[str], limit: int = 8) -> str:
@@ -76,13 +77,20 @@ def load_weights(model: VLAModel, path: str) -> VLAModel:
                 bad.append(f"{k}: file {list(shape)} vs model {list(expected[k].shape)}")
             # A cast cannot turn integers, booleans or scale-only formats into trained floating-point weights:
             # such a tensor is another file's, or a corrupted one.
-            if expected[k].dtype.is_floating_point and part.get_dtype() not in FLOAT_DTYPES:
-                kinds.append(f"{k}: file {part.get_dtype()} vs model {str(expected[k].dtype).removeprefix('torch.')}")
+            want = expected[k].dtype
+            if want.is_floating_point:
+                fits = part.get_dtype() in FLOAT_DTYPES
+            else:
+                # An index or a mask: a float file would be truncated to other integers (NaN to -2**63) or read
+                # as True/False, silently. Integers load into integers, booleans into booleans.
+                fits = part.get_dtype() == "BOOL" if want == torch.bool else part.get_dtype() in INT_DTYPES
+            if not fits:
+                kinds.append(f"{k}: file {part.get_dtype()} vs model {str(want).removeprefix('torch.')}")
         if bad:
             problems.append(f"{len(bad)} shape mismatch(es): " + "; ".join(bad[:8]) +
                             (f"; ... ({len(bad) - 8} more)" if len(bad) > 8 else ""))
         if kinds:
-            problems.append(f"{len(kinds)} tensor(s) of a dtype that cannot hold floating-point weights: " + "; ".join(kinds[:8]) +
+            problems.append(f"{len(kinds)} tensor(s) of a dtype that cannot hold the model's values: " + "; ".join(kinds[:8]) +
                             (f"; ... ({len(kinds) - 8} more)" if len(kinds) > 8 else ""))
         if problems:
             arch = meta.get("arch")

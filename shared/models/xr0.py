@@ -57,7 +57,9 @@ class XR0Config:
     mlp: int = 9728
     vocab: int = 151936
     prompt_len: int = 48  # unverified
-    pad_id: int = 0
+    # Qwen's <|endoftext|>, its tokenizer's pad token. Its id 0 is "!": a prompt mask of `tokens != 0` would drop
+    # every "!" of a real prompt. (The byte-level fallback's ids stay below 258.)
+    pad_id: int = 151643
     rope_theta: float = 5000000.0
     dit_layers: int = 16  # DiT layer i reads VLM layer depth - dit_layers + i
     dit_width: int = 1024
@@ -163,7 +165,7 @@ class XR0(VLAModel):
         "full": XR0Config(),
         "tiny": XR0Config(image_size=32, vit_size=32, patch=4, vit_width=32, vit_depth=4, vit_heads=2, vit_mlp=64,
                           vit_pos_grid=6, deepstack=(0, 1, 2), width=64, depth=6, heads=4, kv_heads=2, head_dim=16,
-                          mlp=128, vocab=512, prompt_len=8, dit_layers=3, dit_width=32, dit_heads=2,
+                          mlp=128, vocab=512, prompt_len=8, pad_id=0, dit_layers=3, dit_width=32, dit_heads=2,
                           dit_kv_heads=2, dit_mlp=64, time_freqs=16, state_dim=8, action_dim=7, horizon=6, steps=3),
     }
     ACTION_MODULES = ("dit",)
