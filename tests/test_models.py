@@ -145,6 +145,11 @@ def test_user_registered_architecture():
         _ARCHS.pop("my_test_vla", None)
 
 
+def _small_io() -> ModelIO:
+    return ModelIO(cameras=("base",), image_shape=(8, 8, 3), state_dim=4, prompt_len=4, horizon=3, action_dim=2,
+                   steps=2)
+
+
 class _StockLayers(VLAModel):
     """A user's model as people write them: stock layers that initialise in _reset_parameters, a buffer, a
     bare parameter, and no init_weights of its own."""
@@ -153,8 +158,7 @@ class _StockLayers(VLAModel):
 
     def __init__(self, width: int):
         super().__init__()
-        self.io = ModelIO(cameras=("base",), image_shape=(8, 8, 3), state_dim=4, prompt_len=4, horizon=3,
-                          action_dim=2, steps=2)
+        self.io = _small_io()
         self.attn = torch.nn.TransformerEncoderLayer(width, 2, 32, batch_first=True)
         self.query = torch.nn.Parameter(torch.randn(3, width) * 0.02)
         self.register_buffer("scale", torch.full((width,), 0.5))
@@ -199,8 +203,7 @@ class _Tied(VLAModel):
 
     def __init__(self, width: int):
         super().__init__()
-        self.io = ModelIO(cameras=("base",), image_shape=(8, 8, 3), state_dim=4, prompt_len=4, horizon=3,
-                          action_dim=2, steps=2)
+        self.io = _small_io()
         self.embed = torch.nn.Embedding(16, width)
         self.head = torch.nn.Linear(width, 16, bias=False)
         self.head.weight = self.embed.weight
@@ -217,8 +220,7 @@ class _NeedsRealValues(VLAModel):
 
     def __init__(self, depth: int):
         super().__init__()
-        self.io = ModelIO(cameras=("base",), image_shape=(8, 8, 3), state_dim=4, prompt_len=4, horizon=3,
-                          action_dim=2, steps=2)
+        self.io = _small_io()
         self.rates = [x.item() for x in torch.linspace(0, 0.1, depth)]
         self.proj = torch.nn.Linear(4, 4)
 
