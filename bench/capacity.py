@@ -332,6 +332,8 @@ def bad_arguments(args: argparse.Namespace, robots: list[int] | None) -> str | N
         return f"--start and --max-robots: expected 1 <= start <= max-robots, got {args.start} and {args.max_robots}"
     if robots is not None and (not robots or min(robots) < 1):
         return f"--sweep: expected robot counts of at least 1, got {args.sweep!r}"
+    if args.seed < 0:  # numpy's SeedSequence refuses it, after the models and the overlap bound are built
+        return f"--seed: expected a non-negative integer, got {args.seed}"
     return None
 
 

@@ -260,9 +260,11 @@ class RobotClient:
         """Send a request and track it; raise RobionError, with nothing left pending, when it cannot go out."""
         # The router answers a request whose id or header it cannot read with id "" (docs/protocol.md): such
         # an answer matches nothing here, so the request would only ever time out. Refuse it before sending.
-        if not valid_id(rid):
-            raise RobionError(ErrorCode.BAD_REQUEST, f"id: expected a str of at most {MAX_ID_CHARS} characters "
-                                                     f"or an int, got {type(rid).__name__}", "")
+        # "" included: it is the id of the router's answers to requests it could not read, so a request under
+        # it could be handed another request's error.
+        if not valid_id(rid) or rid == "":
+            raise RobionError(ErrorCode.BAD_REQUEST, f"id: expected a non-empty str of at most {MAX_ID_CHARS} "
+                                                     f"characters or an int, got {type(rid).__name__}", "")
         if len(frames[0]) > MAX_HEADER_BYTES:
             raise RobionError(ErrorCode.TOO_LARGE, f"header is {len(frames[0])} bytes; the limit is "
                                                    f"{MAX_HEADER_BYTES} (is the instruction too long?)", str(rid))

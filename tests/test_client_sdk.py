@@ -154,3 +154,15 @@ def test_inputs_that_cannot_travel_are_robion_errors(images, instruction, messag
         with pytest.raises(RobionError, match=message) as exc:
             c.submit("toy-a", images, np.zeros(8, np.float32), instruction)
         assert exc.value.code == ErrorCode.BAD_REQUEST and c.pending() == 0
+
+
+def test_an_empty_id_is_refused_before_sending():
+    """"" is the id of the router's answers to requests it could not read: a request sent under it could be
+    handed another request's error."""
+    [port] = free_ports(1)
+    with RobotClient(f"tcp://127.0.0.1:{port}", robot_id="odd", timeout_s=1.0) as c:
+        images = {"cam0": np.zeros((8, 8, 3), np.uint8)}
+        with pytest.raises(RobionError, match="non-empty") as exc:
+            c.submit("toy-a", images, np.zeros(4, np.float32), request_id="")
+        assert exc.value.code == ErrorCode.BAD_REQUEST and c.pending() == 0
+        assert c.submit("toy-a", images, np.zeros(4, np.float32), request_id=0) == 0  # 0 is an id
