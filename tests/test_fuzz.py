@@ -38,9 +38,13 @@ def retag(frames, rid, fn):
     return [pack_header(h), *frames[1:]]
 
 
-def cases(rng, limit):
-    """(frames, expected code, expected reply id); the id is "" when the header cannot be read."""
-    B, S, U, T = ErrorCode.BAD_REQUEST, ErrorCode.SHAPE_MISMATCH, ErrorCode.UNKNOWN_MODEL, ErrorCode.TOO_LARGE
+def cases(rng, limit, unknown_model: ErrorCode = ErrorCode.UNKNOWN_MODEL):
+    """(frames, expected code, expected reply id); the id is "" when the header cannot be read.
+
+    ``unknown_model``: the answer to a model the cluster does not serve. The router's is UNKNOWN_MODEL; an
+    executor is sent only models of the router's table, so to it such a model is one routed by an older
+    table, and its answer is UNAVAILABLE (retry)."""
+    B, S, U, T = ErrorCode.BAD_REQUEST, ErrorCode.SHAPE_MISMATCH, unknown_model, ErrorCode.TOO_LARGE
     kinds = [
         lambda r: ([rng.bytes(int(rng.integers(1, 200)))], B, None),  # random bytes (may decode to a non-map)
         lambda r: ([b"\xc1" + rng.bytes(20)], B, ""),  # never valid msgpack
@@ -151,7 +155,7 @@ def test_executor_survives_junk_from_its_router(tmp_path):
         ident, robot, hello = backend.recv_multipart()
         assert ident == b"ex0" and robot == b""
         rng = np.random.default_rng(7)
-        gen = cases(rng, cfg.router.max_message_bytes)
+        gen = cases(rng, cfg.router.max_message_bytes, unknown_model=ErrorCode.UNAVAILABLE)
         for i in range(600):
             frames, code, expect = next(gen)
             if i % 50 == 3:
