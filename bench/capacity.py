@@ -277,11 +277,12 @@ def plot(doc: dict, path: Path) -> bool:
         for engine, pts in doc["curves"][model].items():
             # A count measured twice (screened, then in full): the full run, whose verdict the search took,
             # even where it stopped early after as few epochs as screening ran; else the longer run.
+            def rank(p: dict) -> tuple[bool, int]:
+                return not p.get("screened", False), p["epochs"]
+
             best: dict[int, dict] = {}
             for pt in pts:
-                rank = (not pt.get("screened", False), pt["epochs"])
-                old = best.get(pt["robots"])
-                if old is None or rank > (not old.get("screened", False), old["epochs"]):
+                if pt["robots"] not in best or rank(pt) > rank(best[pt["robots"]]):
                     best[pt["robots"]] = pt
             pts = sorted(best.values(), key=lambda p: p["robots"])
             xs = [p["robots"] for p in pts]

@@ -28,7 +28,6 @@ from shared.protocol import (MAX_HEADER_BYTES, MAX_ID_CHARS, ErrorCode, ErrorRep
                              header_id, message_bytes, unpack_answer_header, valid_id)
 from shared.service import connect
 
-
 log = logging.getLogger("robion.client")
 
 # The generated ids are "<robot_id>-<session>-<counter>" or "<robot_id>-<session>-<tag>-<counter>"; this leaves

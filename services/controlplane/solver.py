@@ -907,11 +907,7 @@ def solve_ip(
     if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
         return fallback(f"CP-SAT status {name}", bound)
 
-    assignment: dict[str, dict[int, int]] = {m.name: {} for m in problem.models}
-    for (i, j), v in ip.r.items():
-        assignment[problem.models[i].name][j] = int(solver.value(v))
-    if check_assignment(problem, assignment):  # would be a formulation bug; never hand out an overload silently
-        raise AssertionError(f"CP-SAT returned an invalid assignment: {check_assignment(problem, assignment)}")
+    assignment = _read_plan(problem, ip, solver)
     if greedy is not None and plan_key(problem, greedy) < plan_key(problem, assignment):
         return fallback(f"CP-SAT's best plan within the time limit was worse (status {name})", bound)
     optimal = objective_value(problem, assignment) <= bound
@@ -935,11 +931,17 @@ def _first_plan(problem: PlanProblem, ip: _IpModel, deadline: float,
     log.debug("CP-SAT first plan: %s in %.3fs", solver.status_name(status), solver.wall_time)
     if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
         return None
+    return _read_plan(problem, ip, solver)
+
+
+def _read_plan(problem: PlanProblem, ip: _IpModel, solver: cp_model.CpSolver) -> dict[str, dict[int, int]]:
+    """The assignment of CP-SAT's solution to ``ip`` (or to a clone of it: the same variables by index)."""
     plan: dict[str, dict[int, int]] = {m.name: {} for m in problem.models}
     for (i, j), v in ip.r.items():
         plan[problem.models[i].name][j] = int(solver.value(v))
-    if check_assignment(problem, plan):  # would be a formulation bug; never hand out an overload
-        raise AssertionError(f"CP-SAT returned an invalid assignment: {check_assignment(problem, plan)}")
+    problems = check_assignment(problem, plan)
+    if problems:  # would be a formulation bug; never hand out an overload silently
+        raise AssertionError(f"CP-SAT returned an invalid assignment: {problems}")
     return plan
 
 

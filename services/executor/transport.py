@@ -111,8 +111,6 @@ class ExecutorIO:
         self.store = store
         self.slot = slot
         self.served: dict[str, ServedInput] = hosted.inputs  # replaced whole on a reload, never mutated
-        # Models the router may route here: the configured ones and every one served here since
-        # (a later apply may add models). One of them not served now is a routing race (UNAVAILABLE).
         self._gauged: set[str] = set(self.served)  # models with per-model gauge series
         self.limits = limits or {}  # measured robot limits of the models this executor owns
         # Names this process: a registration with another token is a restarted executor (a rollout

@@ -102,8 +102,8 @@ def build_model(arch: str, size: str = "tiny", seed: int = 0, device: str | torc
 
 def _shares_parameters(model: torch.nn.Module) -> bool:
     """Whether one parameter is reachable under two names (tied weights)."""
-    return len({id(p) for _, p in model.named_parameters(remove_duplicate=False)}) < sum(
-        1 for _ in model.named_parameters(remove_duplicate=False))
+    params = [p for _, p in model.named_parameters(remove_duplicate=False)]
+    return len({id(p) for p in params}) < len(params)
 
 
 def build_meta(arch: str, size: str = "full") -> VLAModel:
