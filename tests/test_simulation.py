@@ -142,6 +142,40 @@ def test_unanswered_requests_are_misses(toy):
     assert math.isnan(s.p99_ms) and res.to_dict()["models"]["toy"]["p99_ms"] is None
 
 
+def test_a_late_answer_from_an_earlier_run_is_not_this_runs_answer(toy):
+    # An engine reused across points (a worker process, say) answers the first run's requests only once the
+    # second run has begun. Those answers must not count for the second run's requests of the same number.
+    class Straggler(Engine):
+        def __init__(self, *args):
+            super().__init__(*args)
+            self.held: list = []
+            self.runs = 0
+
+        def run(self, stop):
+            self.runs += 1
+            super().run(stop)
+
+        def step(self) -> bool:
+            if self.runs > 1 and self.held:
+                late, self.held = self.held, []
+                self.on_results([Result(r, actions=np.zeros((1, 1), np.float32), done=time.monotonic())
+                                 for r in late])
+            _, batch, _ = self.queues.take(self.cfg.max_batch)
+            if self.runs == 1:
+                self.held += batch
+            return bool(batch)
+
+    cfg = EngineConfig(max_batch=4)
+    host = EngineHost(lambda sink: Straggler(served(toy, 100), cfg, CPU, sink))
+    workload, sim = [RobotGroup("toy", 2, 10.0)], SimConfig(epochs=1, duration_s=0.3, drain_s=0.1, network="none")
+    first = simulate(host, workload, sim).models["toy"]
+    assert first.sent > 0 and first.no_reply == first.sent
+    assert host.engine.held, "the first run's requests are held for the second"
+    second = simulate(host, workload, sim).models["toy"]
+    assert not host.engine.held, "the late answers were delivered during the second run"
+    assert second.sent > 0 and second.no_reply == second.sent and second.slo_attainment == 0.0
+
+
 def test_requests_still_queued_at_the_end_are_answered_as_errors(toy):
     # An engine that never steps: stopping it answers the queue with UNAVAILABLE, which counts as a miss.
     class Idle(Engine):

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import gc
+import itertools
 import logging
 import math
 import threading
@@ -397,6 +398,9 @@ def _as_host(engine: EngineHost | EngineFactory) -> EngineHost:
 
 # ----------------------------------------------------------------------------- simulation
 
+_EPOCH_RUNS = itertools.count()
+
+
 def _sleep_until(target: float) -> None:
     """Coarse sleep, then spin: time.sleep alone overshoots by up to a scheduler tick."""
     while True:
@@ -439,6 +443,9 @@ def _run_epoch(host: EngineHost, workload: Sequence[RobotGroup], cfg: SimConfig,
                inputs: dict[str, _ModelInputs]) -> EpochResult:
     rng = np.random.default_rng(epoch_seed(cfg.seed, epoch))
     schedule = make_schedule(workload, cfg.duration_s, rng)
+    # Ids name the run too: an engine reused across points must never have a straggler of an earlier
+    # epoch's request (a worker process answering late) count as this epoch's request of the same number.
+    run = next(_EPOCH_RUNS)
 
     # Requests are built before the clock starts; only arrival and deadline are set at send time.
     outcomes: dict[str, _Outcome] = {}
@@ -447,7 +454,7 @@ def _run_epoch(host: EngineHost, workload: Sequence[RobotGroup], cfg: SimConfig,
         group = workload[s.group]
         mi = inputs[group.model]
         k = s.robot % len(mi.images)
-        rid = f"e{epoch}-{i}"
+        rid = f"r{run}-e{epoch}-{i}"
         req = Request(id=rid, robot=f"{group.model}/{s.group}/{s.robot}", model=group.model, images=mi.images[k],
                       state=mi.states[k], tokens=mi.tokens[k], arrival=0.0, deadline=0.0)
         outcomes[rid] = out = _Outcome(group.model, mi.slo_s, mi.net_s[k])
