@@ -408,3 +408,28 @@ def test_deeply_nested_header_values_are_answered_bad_request(tmp_path):
             rep = ask(robot, [pack_header(header)])
             assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.BAD_REQUEST and rep.id == rid, rep
         assert ask(robot, [pack_header({"v": 1, "kind": "ping", "id": "p"})]).id == "p"
+
+
+def test_a_request_whose_handling_fails_is_answered_internal_at_once(tmp_path, monkeypatch):
+    """A fault inside the router's handling of one request (injected here: no input is known to cause one) is
+    answered INTERNAL ("retry") at once, instead of leaving the robot to wait out its timeout; the next
+    request is routed as before."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=60.0) as rt:
+        ex = rt.executor(b"ex0")
+        robot = rt.robot(b"arm")
+        routing = rt.router.routing
+        real = routing.candidates
+        faults = iter([True])
+
+        def candidates(model, pin):
+            if next(faults, False):
+                raise RuntimeError("injected fault")
+            return real(model, pin)
+
+        monkeypatch.setattr(routing, "candidates", candidates)
+        rep = ask(robot, infer_frames("r1"))
+        assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.INTERNAL and rep.id == "r1", rep
+        assert not rt.router.in_flight
+        robot.send_multipart(infer_frames("r2"))
+        assert ex.poll(2000), "the next request never reached the executor"
+        assert decode(ex.recv_multipart()[1:]).id == "r2"

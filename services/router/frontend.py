@@ -166,6 +166,8 @@ class Router:
                             self._from_control(frames)
                     except Exception:  # nothing a peer sends may stop the router
                         log.exception("unexpected failure handling a message")
+                        if sock is self.frontend:
+                            self._answer_fault(frames)
         self.close()
 
     def close(self) -> None:
@@ -193,6 +195,17 @@ class Router:
         # Only served model names become label values: robots cannot grow the series count.
         self.metrics.requests.labels(model if self._serves(model) else "", code.value.lower()).inc()
         self.frontend.send_multipart([robot, *error_frames(rid, code, message)], copy=False)
+
+    def _answer_fault(self, frames: list[zmq.Frame]) -> None:
+        """A robot's request whose handling raised is answered INTERNAL ("retry") at once, unless it went on to
+        an executor (that one answers it): otherwise its robot would wait out its own timeout for nothing."""
+        try:
+            robot = frames[0].bytes
+            rid = header_id(unpack_header(frames[1].buffer)) if len(frames) > 1 else ""
+            if flight_key(robot, rid) not in self.in_flight:
+                self._reply_error(robot, rid, ErrorCode.INTERNAL, "the router failed to handle this request")
+        except Exception:  # the answer is best effort: the failure is logged above
+            log.debug("could not answer a request whose handling failed", exc_info=True)
 
     def _serves(self, model: str) -> bool:
         """A model of the cluster: one the routing table lists, or, before any table has come (the control plane
