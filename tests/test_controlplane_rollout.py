@@ -119,3 +119,43 @@ def test_an_executor_restarted_after_an_apply_is_brought_to_the_applied_state(tm
         assert status is not None, control_status(cfg.control.bind, 5)
         assert status["table"]["routes"]["toy-b"] == ["ex0", "ex1"], status["table"]["routes"]
         assert status["rollout"]["done"] == ["ex1"] and status["rollout"]["failed"] == [], status["rollout"]
+
+
+def test_a_model_whose_new_host_failed_to_load_it_keeps_its_old_host(tmp_path):
+    """toy-b moves from ex0 to ex1 with weights ex1 cannot load. The plan ran ex1 first so toy-b would keep a host,
+    then ex0's step dropped toy-b anyway: its only host was gone and every request for it was answered UNAVAILABLE
+    until an operator stepped in. ex0's step now sees that nobody else serves toy-b and fails instead."""
+    path, data = cluster_config(tmp_path)  # ex0: toy-a, toy-b; ex1: toy-a
+    cfg = load_config(path)
+    new = yaml.safe_load(path.read_text())
+    new["models"][1]["weights"] = str(tmp_path / "typo.safetensors")
+    new["executors"][0]["models"] = ["toy-a"]
+    new["executors"][1]["models"] = ["toy-a", "toy-b"]
+    with LocalCluster(cfg, path, log_level="WARNING"):
+        status = apply_and_wait(cfg.control.bind, new, ["ex1", "ex0"])
+        assert status["rollout"]["failed"] == ["ex1", "ex0"] and status["rollout"]["done"] == [], status["rollout"]
+        assert status["executors"]["ex0"]["models"] == ["toy-a", "toy-b"]
+        assert status["table"]["routes"]["toy-b"] == ["ex0"], status["table"]["routes"]
+        assert not any(e["draining"] for e in status["executors"].values())
+
+
+def test_applying_the_same_file_again_retries_the_executors_it_did_not_reach(tmp_path):
+    """New weights for toy-a, whose file is not there yet: both steps fail and the executors keep the old weights.
+    Once the file is in place, applying the same file again planned no step (it compared the file with the one
+    before it, not with what the executors run) and reported success while the old weights kept serving."""
+    from shared.models import build_model
+    from shared.models.weights import save_weights
+
+    path, data = cluster_config(tmp_path)  # ex0: toy-a, toy-b; ex1: toy-a
+    cfg = load_config(path)
+    weights = tmp_path / "toy-a-v2.safetensors"
+    new = yaml.safe_load(path.read_text())
+    new["models"][0]["weights"] = str(weights)
+    with LocalCluster(cfg, path, log_level="WARNING"):
+        status = apply_and_wait(cfg.control.bind, new, ["ex1", "ex0"])
+        assert status["rollout"]["failed"] == ["ex1", "ex0"], status["rollout"]
+        save_weights(build_model("toy", "tiny", seed=7), str(weights))
+        status = apply_and_wait(cfg.control.bind, new, ["ex1", "ex0"])
+        assert status["rollout"]["done"] == ["ex1", "ex0"] and status["rollout"]["failed"] == [], status["rollout"]
+        # Everything runs the applied file now: a third apply of it has nothing to do.
+        apply_and_wait(cfg.control.bind, new, [])

@@ -87,6 +87,37 @@ def test_a_brief_absence_does_not_fail_the_step():
     assert ro.failed == [] and ro.current.executor == "ex0"
 
 
+def test_a_brief_absence_before_the_step_starts_does_not_fail_it():
+    """ex0 missed its heartbeats for a moment just as its step came up: the step was failed at once and ex0,
+    back a second later, never got the load (its process unchanged, nothing reloads it later)."""
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _state_with(["ex0", "ex1"])
+    loads = []
+    ro = Rollout([Step("ex0", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
+    info = st.executors["ex0"].models["a"]
+    st.deregister("ex0")
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=1.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=20.0)
+    assert ro.failed == [] and ro.current.executor == "ex0" and not ro.current.started
+    st.register("ex0", "cpu", {"a": info}, now=21.0, instance="ex0-1")
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=22.0)  # drained
+    st.router_version = st.table.version
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=23.0)
+    assert loads == ["ex0"] and ro.failed == []
+
+
+def test_an_executor_that_does_not_come_back_before_its_step_is_skipped_after_the_grace():
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _state_with(["ex0", "ex1"])
+    ro = Rollout([Step("ex0", [c.model("a")]), Step("ex1", [c.model("a"), c.model("b")])], timeout_s=600, gone_s=30)
+    st.deregister("ex0")
+    ro.tick(st, lambda ex, models, load_id: None, now=1.0)
+    ro.tick(st, lambda ex, models, load_id: None, now=32.0)
+    assert ro.failed == ["ex0"] and ro.current.executor == "ex1"
+
+
 def test_an_executor_that_restarts_during_its_change_is_sent_the_load_again():
     from services.controlplane.rollout import Rollout, Step
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any, Callable
 
 from services.controlplane.state import ClusterState
-from shared.config import ClusterConfig, ModelConfig, executor_settings
+from shared.config import ClusterConfig, ModelConfig, executor_settings, settings_digest
 
 log = logging.getLogger("robion.control")
 
@@ -92,7 +92,11 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
         def changed(model: str) -> bool:
             try:
                 # A change of settings only the traffic controller reads (populations) re-solves the quotas
-                # without reloading the executors hosting the model.
+                # without reloading the executors hosting the model. What the executor registered is compared
+                # where it said: after a failed step it still runs settings the file before this one no longer
+                # names, and applying the same file again must retry it.
+                if ex.settings is not None and model in ex.settings:
+                    return ex.settings[model] != settings_digest(new.model(model))
                 return executor_settings(old.model(model)) != executor_settings(new.model(model))
             except KeyError:
                 return True
@@ -120,6 +124,16 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
             serving[step.executor] = {m.name for m in step.models}
         ordered.append(step)
     return ordered
+
+
+def _sole_host_of(state: ClusterState, executor: str) -> set[str]:
+    """The models ``executor`` serves that no other executor routed now serves."""
+    ex = state.executors.get(executor)
+    if ex is None:
+        return set()
+    others = set().union(*(set(e.models) for n, e in state.executors.items()
+                           if n != executor and not state.routed_nothing_new(n)))
+    return set(ex.models) - others
 
 
 def _drain(state: ClusterState, step: Step) -> None:
@@ -155,7 +169,21 @@ class Rollout:
             return
         if not step.started:
             if step.executor not in state.executors:
-                log.warning("executor %s is gone; skipping its placement change", step.executor)
+                # Off the registry for a moment (missed heartbeats, a restart) is not gone: it gets the grace a
+                # started step gets.
+                if self._gone(now) > self.gone_s:
+                    log.error("executor %s is off the registry (for %.0f s); skipping its placement change",
+                              step.executor, self._gone(now))
+                    self._skip(step)
+                return
+            self._gone_since = None
+            lost = sorted(_sole_host_of(state, step.executor) - {m.name for m in step.models} - set(step.unhosted))
+            if lost:
+                # The plan counted on another executor serving these by now; its step failed (or it left). Dropping
+                # them here would leave them with no host at all, not just for this reload.
+                log.error("executor %s is the only host of %s, which its placement change drops: an earlier step "
+                          "that was to host them elsewhere did not; keeping %s as it is", step.executor, lost,
+                          step.executor)
                 self._skip(step)
                 return
             step.started = now

@@ -307,7 +307,8 @@ class ControlPlane:
             settings = msg.get("settings")
             if settings is not None and not isinstance(settings, dict):
                 raise BadRequest(f"settings: expected a map, got {_kind_of(settings)}")
-            st.register(name, str(msg.get("device", "")), models, limits=limits, instance=instance)
+            digests = {str(m): d for m, d in settings.items() if isinstance(d, str)} if settings is not None else None
+            st.register(name, str(msg.get("device", "")), models, limits=limits, instance=instance, settings=digests)
             log.info("executor %s registered on %s with %s (table v%d)", name, msg.get("device"),
                      sorted(models), st.table.version)
             if self.rollout is not None:

@@ -46,6 +46,9 @@ class ExecutorState:
     # an operator's drain is ClusterState.drained, which outlives this entry
     draining: bool = False
     instance: str = ""  # the executor process's token: another one after a restart
+    # A digest of each served model's settings (shared.config.settings_digest), as the executor registered them;
+    # None from an executor that sent none. What an apply compares with, rather than the file before it.
+    settings: dict[str, str] | None = None
 
 
 class ClusterState:
@@ -111,7 +114,8 @@ class ClusterState:
         return self.cfg.control.heartbeat_s * self.cfg.control.missed_heartbeats
 
     def register(self, name: str, device: str, models: dict[str, ModelInfo], now: float | None = None,
-                 limits: dict[str, int] | None = None, instance: str = "") -> None:
+                 limits: dict[str, int] | None = None, instance: str = "",
+                 settings: dict[str, str] | None = None) -> None:
         # One bad measured limit (0, negative, a fraction, inf, NaN) would make the traffic plan
         # invalid for every model, so it is ignored; the executor's valid limits still count.
         limits = limits or {}
@@ -127,7 +131,7 @@ class ClusterState:
         # its heartbeats time out) starts undrained; a rollout step drains a restarted executor again itself.
         draining = old is not None and old.draining and old.instance == instance
         self.executors[name] = ExecutorState(name, device, models, now or time.monotonic(),
-                                             draining=draining, instance=instance)
+                                             draining=draining, instance=instance, settings=settings)
         # A limit measured or changed since the last solve (a model's first measurement, one after a reload)
         # re-solves the quotas even when the routes stay the same.
         self._rebuild(force=self.measured_limits != measured_before)
