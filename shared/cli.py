@@ -139,7 +139,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     try:
         runpy.run_path(str(script), run_name="__main__")
     except SystemExit as exc:
-        return int(exc.code or 0) if not isinstance(exc.code, str) else 1
+        if isinstance(exc.code, str):  # a benchmark's own refusal (SystemExit("...")): the operator must see it
+            print(exc.code, file=sys.stderr)
+            return 1
+        return int(exc.code or 0)
     return 0
 
 
@@ -154,38 +157,54 @@ def applied_solve_limit(text: str) -> float:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
+    from shared.protocol import ProtocolError
+
+    try:
+        return _ctl(args)
+    except ProtocolError as exc:  # an answer this client cannot read (too large, malformed)
+        print(f"robion ctl {args.action}: unreadable answer from the control plane: {exc.message}", file=sys.stderr)
+        return 1
+
+
+def _ctl(args: argparse.Namespace) -> int:
     from shared.cluster import control_request, control_status
 
     cfg = load_or_exit(args.config)
     address = dial_address(cfg.control.bind, cfg.control.connect)
-    if args.action == "status":
-        status = control_status(address, timeout_s=2.0)
-        if status is None:
-            print(f"control plane at {address} does not answer", file=sys.stderr)
-            return 1
-        print(json.dumps(status, indent=2))
-        return 0
-    if not args.target:
+    if args.action != "status" and not args.target:
         print(f"robion ctl {args.action}: needs {'a config file' if args.action == 'apply' else 'an executor name'}",
               file=sys.stderr)
         return 2
+    fields: dict = {"executor": args.target}
     if args.action == "apply":
         try:
-            text = Path(args.target).read_text(encoding="utf-8")
+            fields = {"config": Path(args.target).read_text(encoding="utf-8")}
         except OSError as exc:
             print(f"robion ctl apply: cannot read {args.target}: {exc.strerror}", file=sys.stderr)
             return 2
         except UnicodeDecodeError:  # a binary file named by mistake: not a config
             print(f"robion ctl apply: cannot read {args.target}: not a UTF-8 text file", file=sys.stderr)
             return 2
-        # The control plane answers once it has re-solved the traffic plan under the applied file's time limit.
-        solve_s = applied_solve_limit(text)
-        reply = control_request(address, "apply", timeout_s=ANSWER_MARGIN_S + max(solve_s, cfg.control.solve_time_limit_s),
-                                config=text)
-    else:
-        # A drain or resume re-solves the traffic plan before the answer, for up to control.solve_time_limit_s.
-        reply = control_request(address, args.action, timeout_s=ANSWER_MARGIN_S + cfg.control.solve_time_limit_s,
-                                executor=args.target)
+    # The status first, for every action: an apply, drain or resume is answered once the plane has re-solved the
+    # traffic plan, up to its solve time limit (an apply: the applied file's, where longer), twice where no plan
+    # keeps the headroom and it plans to the full limits. The limit is the one the plane runs (an apply may have
+    # changed it since this file was written); a plane that does not answer is reported at once, not after that wait.
+    reply = control_request(address, "status", timeout_s=2.0)
+    live = reply.get("status") if reply is not None and reply.get("kind") == "status" else None
+    if args.action == "status" or reply is None:
+        if reply is None:
+            print(f"control plane at {address} does not answer", file=sys.stderr)
+            return 1
+        if not isinstance(live, dict):
+            print(f"robion ctl status: {reply.get('message', reply.get('kind'))}", file=sys.stderr)
+            return 1
+        print(json.dumps(live, indent=2))
+        return 0
+    solve_s = ((live if isinstance(live, dict) else {}).get("control") or {}).get("solve_time_limit_s")
+    solve_s = float(solve_s) if solve_time_limit(solve_s) else cfg.control.solve_time_limit_s
+    if args.action == "apply":
+        solve_s = max(solve_s, applied_solve_limit(fields["config"]))
+    reply = control_request(address, args.action, timeout_s=ANSWER_MARGIN_S + 2 * solve_s, **fields)
     if reply is None:
         print(f"control plane at {address} does not answer", file=sys.stderr)
         return 1

@@ -105,13 +105,17 @@ REGISTER = {"executor": "ex0", "device": "cpu", "models": {"toy-a": INFO}}
     ("table_get", {"role": "router", "version": None}, "version"),
     ("heartbeat", {}, "executor"),
     ("heartbeat", {"executor": "ex0", "depths": [1, 2]}, "depths"),
+    ("heartbeat", {"executor": "ex0", "depths": {"toy-a": [[[1]]]}}, "depths"),
+    ("heartbeat", {"executor": "ex0", "depths": {"toy-a": -1}}, "depths"),
+    ("heartbeat", {"executor": "ex0", "depths": {"toy-a": True}}, "depths"),
     ("deregister", {}, "executor"),
     ("deregister", {"executor": ["ex0"]}, "executor"),
 ], ids=["register-no-executor", "register-executor-not-str", "register-no-models", "register-models-not-map",
         "register-model-info-incomplete", "register-model-info-mistyped", "register-model-info-infinite",
         "register-limits-not-map",
         "table_get-version-str", "table_get-version-float", "table_get-version-null", "heartbeat-no-executor",
-        "heartbeat-depths-not-map", "deregister-no-executor", "deregister-executor-not-str"])
+        "heartbeat-depths-not-map", "heartbeat-depth-nested", "heartbeat-depth-negative", "heartbeat-depth-bool",
+        "deregister-no-executor", "deregister-executor-not-str"])
 def test_malformed_control_message_is_answered_bad_request(plane, kind, fields, field):
     address, _, _, t = plane
     assert_bad_request(request(address, kind, **fields), field)
@@ -243,3 +247,32 @@ def test_an_unforeseen_failure_of_an_answered_message_is_answered_internal(plane
     assert "status exploded" in reply["message"], reply
     monkeypatch.undo()
     assert control_status(address, WAIT_S) is not None and t.is_alive()
+
+
+def test_messages_nested_a_thousand_deep_are_answered_and_status_keeps_working(plane):
+    """An unknown kind nested 1000 deep: quoting it with repr() raised RecursionError and the sender got no answer.
+    A heartbeat whose queue depth was nested that deep was kept, and every status failed to pack from then on
+    (and with it executors' withdrawals and `apply --wait`)."""
+    import zmq
+
+    from shared import control
+
+    address, _, _, t = plane
+    nested = b"\x91" * 1000 + b"\x90"  # msgpack: [[[...[]...]]], 1000 deep
+    assert request(address, "register", **REGISTER)["kind"] == "registered"
+    ctx = zmq.Context.instance()
+    for body in (b"\x81\xa4kind" + nested,
+                 b"\x83\xa4kind\xa9heartbeat\xa8executor\xa3ex0\xa6depths\x81\xa5toy-a" + nested):
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.connect(address)
+        try:
+            sock.send(body)
+            assert sock.poll(int(WAIT_S * 1000)), "no answer"
+            reply = control.unpack(sock.recv())
+        finally:
+            sock.close()
+        assert reply["kind"] == "error" and reply["code"] == "BAD_REQUEST", reply
+    status = control_status(address, WAIT_S)
+    assert status is not None and status["executors"]["ex0"]["depths"] == {}
+    assert t.is_alive()

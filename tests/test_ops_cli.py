@@ -169,44 +169,88 @@ def test_ctrl_c_at_a_terminal_stops_the_services_in_order(tmp_path):
             proc.wait()
 
 
-def test_ctl_waits_out_the_traffic_solve_a_drain_runs_before_its_answer(tmp_path):
-    """The control plane re-solves the traffic plan before it answers a drain, for up to
-    control.solve_time_limit_s. `robion ctl` waited a fixed 5 s, so with a longer limit it reported
-    "does not answer" and exit 1 for a drain that had taken effect. A stand-in plane answers after 6.5 s."""
-    import threading
-    import time
+class StandInPlane:
+    """A ROUTER on the config's control address answering each message it reads with the next of ``answers``
+    (kind, fields, delay before answering); what it was asked is in ``asked``."""
 
-    import zmq
+    def __init__(self, address: str, answers: list[tuple[str, dict, float]]):
+        import threading
 
-    from shared import control
+        import zmq
 
+        self.ctx = zmq.Context()
+        self.sock = self.ctx.socket(zmq.ROUTER)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.bind(address)
+        self.asked: list[dict] = []
+        self.thread = threading.Thread(target=self._serve, args=(answers,), daemon=True)
+        self.thread.start()
+
+    def _serve(self, answers) -> None:
+        import time
+
+        from shared import control
+
+        for kind, fields, delay_s in answers:
+            if not self.sock.poll(60_000):
+                return
+            peer, frame = self.sock.recv_multipart()
+            self.asked.append(control.unpack(frame))
+            time.sleep(delay_s)
+            self.sock.send_multipart([peer, control.error(fields["code"], fields["message"]) if kind == "error"
+                                      else control.pack(kind, **fields)])
+
+    def close(self) -> None:
+        self.thread.join(20)
+        self.sock.close()
+        self.ctx.term()
+
+
+def test_ctl_waits_out_the_traffic_solve_the_plane_runs_before_its_answer(tmp_path):
+    """The control plane re-solves the traffic plan before it answers a drain, for up to its
+    control.solve_time_limit_s. `robion ctl` waited by the limit of its own file, so after an apply had raised the
+    plane's limit it reported "does not answer" and exit 1 for a drain that had taken effect. The stand-in plane
+    runs a limit of 8 s (the file says 1) and answers the drain after 12 s."""
     path, data = cluster_config(tmp_path)
-    data["control"]["solve_time_limit_s"] = 8
+    data["control"]["solve_time_limit_s"] = 1
     path.write_text(yaml.safe_dump(data))
-    ctx = zmq.Context()
-    plane = ctx.socket(zmq.ROUTER)
-    plane.setsockopt(zmq.LINGER, 0)
-    plane.bind(data["control"]["bind"])
-    asked: list[dict] = []
-
-    def answer_late() -> None:
-        if plane.poll(60_000):
-            peer, frame = plane.recv_multipart()
-            asked.append(control.unpack(frame))
-            time.sleep(6.5)
-            plane.send_multipart([peer, control.pack("ok", version=3)])
-
-    t = threading.Thread(target=answer_late, daemon=True)
-    t.start()
+    plane = StandInPlane(data["control"]["bind"], [("status", {"status": {"control": {"solve_time_limit_s": 8}}}, 0.0),
+                                                    ("ok", {"version": 3}, 12.0)])
     try:
         res = run("shared.cli", "ctl", "drain", "ex0", "-c", str(path))
     finally:
-        t.join(10)
         plane.close()
-        ctx.term()
-    assert asked and asked[0]["kind"] == "drain" and asked[0]["executor"] == "ex0", asked
+    assert [a["kind"] for a in plane.asked] == ["status", "drain"] and plane.asked[1]["executor"] == "ex0", plane.asked
     assert res.returncode == 0, res.stderr
     assert "drain ex0: routing table v3" in res.stdout, res.stdout
+
+
+def test_ctl_reports_a_plane_that_does_not_answer_at_once(tmp_path):
+    """Nothing at the control address: a drain waited out its whole answer time (10 s plus the solve limit)."""
+    import time
+
+    path, data = cluster_config(tmp_path)
+    data["control"]["solve_time_limit_s"] = 30
+    path.write_text(yaml.safe_dump(data))
+    t0 = time.monotonic()
+    res = run("shared.cli", "ctl", "drain", "ex0", "-c", str(path))
+    assert res.returncode == 1 and "does not answer" in res.stderr, res.stderr
+    assert time.monotonic() - t0 < 15
+
+
+def test_ctl_status_prints_the_planes_error(tmp_path):
+    """A plane that answers status with an error was reported as one that "does not answer"."""
+    from shared.control import ControlError
+
+    path, data = cluster_config(tmp_path)
+    plane = StandInPlane(data["control"]["bind"],
+                         [("error", {"code": ControlError.INTERNAL, "message": "status failed on the control plane"}, 0)])
+    try:
+        res = run("shared.cli", "ctl", "status", "-c", str(path))
+    finally:
+        plane.close()
+    assert res.returncode == 1 and "status failed on the control plane" in res.stderr, res.stderr
+    assert "does not answer" not in res.stderr
 
 
 def test_the_solve_limit_of_an_applied_file_is_read_without_a_full_check():
@@ -240,3 +284,9 @@ def test_a_percent_sign_in_a_service_name_keeps_its_log_readable():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert "Logging error" not in res.stderr, res.stderr
     assert "executor[gpu%1] INFO robion.executor: serving pi0" in res.stderr, res.stderr
+
+
+def test_a_benchmarks_own_refusal_is_shown_by_robion_bench():
+    """`robion bench capacity` without --models exited 1 silently: the script's SystemExit message was dropped."""
+    res = run("shared.cli", "bench", "capacity", "--device", "cpu")
+    assert res.returncode == 1 and "--models is required" in res.stderr, res.stderr

@@ -16,7 +16,7 @@ from shared import control
 from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_text, settings_digest
 from shared.control import ControlError
 from shared.metrics import ControlMetrics, serve
-from shared.protocol import ModelInfo, ProtocolError
+from shared.protocol import ModelInfo, ProtocolError, shown
 from shared.service import bind
 
 log = logging.getLogger("robion.control")
@@ -261,7 +261,7 @@ class ControlPlane:
             return
         kind = msg.get("kind")
         if kind not in self.KINDS:
-            self._error(peer, ControlError.BAD_REQUEST, f"unknown kind {kind!r}")
+            self._error(peer, ControlError.BAD_REQUEST, f"unknown kind {shown(kind)}")
             return
         try:
             self._dispatch(peer, kind, msg)
@@ -316,7 +316,14 @@ class ControlPlane:
             self._reconcile(name, instance, settings)
             self._reply(peer, "registered", version=st.table.version)
         elif kind == "heartbeat":
-            known = st.heartbeat(_name(msg, "executor"), dict(_mapping(msg, "depths")))
+            depths = _mapping(msg, "depths")
+            # Kept for `status`: one value status cannot pack (nested a thousand deep, an int beyond 64 bits)
+            # would fail every status from then on, and with it executors' withdrawals and `apply --wait`.
+            bad = next((m for m, d in depths.items() if not isinstance(m, str) or isinstance(d, bool)
+                        or not isinstance(d, int) or not 0 <= d < 1 << 63), None)
+            if bad is not None:
+                raise BadRequest(f"depths.{shown(bad)}: expected a non-negative integer queue depth per model name")
+            known = st.heartbeat(_name(msg, "executor"), dict(depths))
             if not known:
                 self._reply(peer, "reregister")
         elif kind == "deregister":

@@ -256,6 +256,9 @@ class ClusterState:
             "limits": {m.name: m.limit if m.limit is not None else self.measured_limits.get(m.name) for m in self.cfg.models},
             "router": {"version": self.router_version,
                        "last_seen_s": round(now - self.router_seen, 3) if self.router_seen else None},
+            # The live control settings (an apply changes them): how long an answer that re-solves may take.
+            "control": {"strategy": self.cfg.control.strategy, "headroom": self.cfg.control.headroom,
+                        "solve_time_limit_s": self.cfg.control.solve_time_limit_s},
             "settling": not self.settled(now),
             "ready": (all(n in self.executors for n in expected) and self.router_version == self.table.version
                       and self.router_seen > 0 and now - self.router_seen < 2.0),
