@@ -74,6 +74,26 @@ control: {headroom: 0.5}
     assert run_plan(tmp_path, cluster, "--headroom", "0.25").returncode == 1  # the flag wins
 
 
+def test_a_cluster_config_whose_headroom_no_plan_keeps_is_planned_to_the_full_limits(tmp_path: Path) -> None:
+    """The control plane plans to the full limits where no plan keeps control.headroom; `robion plan` said
+    "infeasible" (exit 1) for the same config. An explicit --headroom still asks for that headroom alone."""
+    cluster = """\
+models:
+  - {name: A, arch: toy, robots: 6, limit: 4}
+  - {name: B, arch: toy, robots: 2, limit: 4}
+executors:
+  - {name: ex0, models: [A]}
+  - {name: ex1, models: [A, B]}
+control: {headroom: 0.5}
+"""
+    out = run_plan(tmp_path, cluster, "--json")
+    assert out.returncode == 0, out.stderr
+    assert "planning to the full robot limits" in out.stderr
+    assert json.loads(out.stdout) == {"assignment": {"A": {"0": 4, "1": 2}, "B": {"1": 2}}, "objective": 4,
+                                      "feasible": True}
+    assert run_plan(tmp_path, cluster, "--headroom", "0.5").returncode == 1
+
+
 def test_strategies_json(tmp_path: Path) -> None:
     smg = run_plan(tmp_path, PAPER, "--strategy", "smg", "--json")
     assert smg.returncode == 1  # GPU 0 serves 6 robots against a limit of 4

@@ -126,6 +126,7 @@ class PlanningInput:
     problem: PlanProblem
     control: ControlConfig | None = None
     unplanned: tuple[str, ...] = ()  # a cluster config's models with robots but no limit (left out of problem)
+    full: PlanProblem | None = None  # the problem at the full limits, where headroom cut them (problem != full)
 
 
 def load_planning_input(path: str | Path, headroom: float | None = None) -> PlanningInput:
@@ -149,11 +150,13 @@ def load_planning_input(path: str | Path, headroom: float | None = None) -> Plan
         try:
             # `imports` name modules beside the config file, as for every service reading it (load_config).
             cfg = config_from_dict(data, Path(path).resolve().parent)
-            problem = with_headroom(problem_from_cluster(cfg), cfg.control.headroom if headroom is None else headroom)
+            full = problem_from_cluster(cfg)
+            problem = with_headroom(full, cfg.control.headroom if headroom is None else headroom)
         except ConfigError as e:
             raise PlanInputError("", str(e)) from None
-        return PlanningInput(problem, cfg.control, tuple(unplanned(cfg)))
-    return PlanningInput(with_headroom(problem_from_mapping(data), 1.0 if headroom is None else headroom))
+        return PlanningInput(problem, cfg.control, tuple(unplanned(cfg)), full)
+    full = problem_from_mapping(data)
+    return PlanningInput(with_headroom(full, 1.0 if headroom is None else headroom), full=full)
 
 
 def load_planning_file(path: str | Path, headroom: float | None = None) -> PlanProblem:
@@ -241,7 +244,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--time-limit", type=_time_limit, help="time limit in seconds for ip (default: a cluster config's "
                                                            f"control.solve_time_limit_s, else {DEFAULT_TIME_LIMIT_S:g})")
     ap.add_argument("--headroom", type=float, help="plan with floor(limit x H) robots per GPU, 0 < H <= 1 "
-                                                   "(default: a cluster config's control.headroom, else 1)")
+                                                   "(default: a cluster config's control.headroom, else 1; where no plan keeps "
+                                                   "the config's headroom, the full limits, as the control plane does)")
     args = ap.parse_args(argv)
 
     try:
@@ -249,6 +253,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         problem = planning.problem
         strategy, time_limit = _defaults(args, planning.control)
         result = solve(problem, strategy, time_limit_s=time_limit)
+        if not result.assignment and args.headroom is None and planning.full is not None and planning.full != problem:
+            # A cluster config's own headroom is planned as the control plane plans it (traffic.assign): a plan
+            # within the full limits beats none. An explicit --headroom asks whether one within it exists.
+            print(f"robion plan: {args.file}: no plan keeps the headroom ({result.diagnosis}); planning to the full "
+                  "robot limits, as the control plane does", file=sys.stderr)
+            problem = planning.full
+            result = solve(problem, strategy, time_limit_s=time_limit)
     except PlanInputError as e:
         print(f"robion plan: {args.file}: {e}", file=sys.stderr)
         return 2
