@@ -436,3 +436,64 @@ def test_replies_the_router_cannot_take_do_not_wedge_the_executor(harness):
     assert len(ids) >= n - 1000 and ids == list(range(n - len(ids), n)), (len(ids), ids[:3], ids[-3:])
     h.close()
     assert not h.thread.is_alive()
+
+
+def test_requests_routed_here_while_the_engine_starts_are_answered_unavailable_at_once(tmp_path):
+    """A real executor process whose engine takes 3 s to start (graph capture takes minutes on a GPU). The router
+    routes to its name by the entry of an earlier process until that entry times out: those requests sat in the
+    socket for the whole start and were then served as if they had just come, actions for observations seconds
+    old counted as within their deadline. They are refused at once now, and the started executor serves."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    path, _ = cluster_config(tmp_path)
+    cfg = load_config(path)
+    ctx = zmq.Context()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    router.bind(cfg.router.backend)
+    slow_start = ("import time\nfrom services.executor import hosting\nstart = hosting.EngineSlot.start\n"
+                  "def slow(self, hosted):\n    time.sleep(3.0)\n    return start(self, hosted)\n"
+                  "hosting.EngineSlot.start = slow\nfrom services.executor.main import main\nraise SystemExit(main())\n")
+    proc = subprocess.Popen([sys.executable, "-c", slow_start, "--config", str(path), "--name", "ex0"],
+                            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    rng = np.random.default_rng(0)
+    io = ModelStore(CPU).load([cfg.model("toy-a")]).inputs["toy-a"].io  # the toy's input shapes
+
+    def ask(rid: str, timeout_s: float):
+        msg = InferRequest(id=rid, robot="r0", model="toy-a", instruction="pick",
+                           images={c: rng.integers(0, 256, io.image_shape, dtype=np.uint8) for c in io.cameras},
+                           state=np.zeros(io.state_dim, np.float32))
+        t0 = time.monotonic()
+        router.send_multipart([b"ex0", b"robot-0", *encode(msg)])
+        while router.poll(int(timeout_s * 1000)):
+            frames = router.recv_multipart()
+            if frames[1] == b"":  # a hello
+                continue
+            return decode(frames[2:]), time.monotonic() - t0
+        return None, time.monotonic() - t0
+
+    try:
+        assert router.poll(30_000), "the executor never said hello"
+        assert router.recv_multipart()[0] == b"ex0"
+        reply, took = ask("early", 2.0)
+        assert reply is not None and reply.id == "early", "not answered during the engine's start"
+        assert getattr(reply, "code", None) == ErrorCode.UNAVAILABLE and took < 1.0, (reply, took)
+        end = time.monotonic() + 30
+        while time.monotonic() < end:  # once the engine is up, the same request is served
+            reply, _ = ask(f"late-{end}", 2.0)
+            if reply is not None and getattr(reply, "code", None) is None:
+                break
+            time.sleep(0.2)
+        assert reply is not None and reply.actions.shape[0] > 0, reply
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        router.close()
+        ctx.term()

@@ -124,7 +124,7 @@ class EngineSlot:
         with self._lock:
             engine = self.engine
         if engine is None:
-            raise ProtocolError(ErrorCode.UNAVAILABLE, "executor is changing its models; retry")
+            raise ProtocolError(ErrorCode.UNAVAILABLE, "executor is starting or changing its models; retry")
         engine.submit(req)
 
     def depths(self) -> dict[str, int]:

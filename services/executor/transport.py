@@ -212,6 +212,30 @@ class ExecutorIO:
         except zmq.Again:  # the pipe to the router is full: requests are flowing, and the next registration repeats it
             log.debug("router pipe full: hello not sent")
 
+    def answer_while_starting(self, started: threading.Event, stop: threading.Event) -> None:
+        """Until ``started`` (or ``stop``), before this process registers: answer every request UNAVAILABLE at once.
+
+        The router routes here by the registry entry of an earlier process of this name until that entry times
+        out, and the engine's start (graph capture, profiling) takes seconds to minutes. Left in the socket, those
+        requests were served after the start as if they had just come (a deadline counts from when a request is
+        read), with actions for observations minutes old. The engine is not there yet, so each is refused.
+        """
+        poller = zmq.Poller()
+        for s in (self.backend, self.backend_events):
+            poller.register(s, zmq.POLLIN)
+        while not started.is_set() and not stop.is_set():
+            ready = dict(poller.poll(50))
+            if self.backend_events in ready and connected_again(self.backend_events):
+                self._hello()
+            if self.backend in ready:
+                for _ in range(256):
+                    try:
+                        frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
+                    except zmq.Again:
+                        break
+                    self._on_request(frames)
+            self._flush_unsent()
+
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop``; the caller then calls ``withdraw`` before stopping the engine."""
         self._poller = zmq.Poller()
