@@ -131,3 +131,13 @@ def wait_for(predicate, timeout_s: float, poll_s: float = 0.1):
             return value
         time.sleep(poll_s)
     return None
+
+
+def bound_router(ctx, address: str):
+    """A ROUTER socket (no linger) bound at ``address``: a stand-in for the router or control plane an executor dials."""
+    import zmq
+
+    sock = ctx.socket(zmq.ROUTER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.bind(address)
+    return sock

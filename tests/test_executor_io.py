@@ -22,7 +22,7 @@ from shared import control
 from shared.config import load_config
 from shared.metrics import ExecutorMetrics
 from shared.protocol import ErrorCode, InferRequest, decode, encode
-from tests.helpers import cluster_config, free_ports
+from tests.helpers import bound_router, cluster_config, free_ports
 
 CPU = torch.device("cpu")
 
@@ -451,9 +451,7 @@ def test_requests_routed_here_while_the_engine_starts_are_answered_unavailable_a
     path, _ = cluster_config(tmp_path)
     cfg = load_config(path)
     ctx = zmq.Context()
-    router = ctx.socket(zmq.ROUTER)
-    router.setsockopt(zmq.LINGER, 0)
-    router.bind(cfg.router.backend)
+    router = bound_router(ctx, cfg.router.backend)
     slow_start = ("import time\nfrom services.executor import hosting\nstart = hosting.EngineSlot.start\n"
                   "def slow(self, hosted):\n    time.sleep(3.0)\n    return start(self, hosted)\n"
                   "hosting.EngineSlot.start = slow\nfrom services.executor.main import main\nraise SystemExit(main())\n")

@@ -165,14 +165,12 @@ def test_the_executor_says_hello_before_its_engine_starts(tmp_path):
     from services.executor.transport import ExecutorIO
     from shared.config import load_config
     from shared.metrics import ExecutorMetrics
-    from tests.helpers import cluster_config
+    from tests.helpers import bound_router, cluster_config
 
     path, _ = cluster_config(tmp_path)
     cfg = load_config(path)
     ctx = zmq.Context()
-    router = ctx.socket(zmq.ROUTER)
-    router.setsockopt(zmq.LINGER, 0)
-    router.bind(cfg.router.backend)
+    router = bound_router(ctx, cfg.router.backend)
     store = ModelStore(torch.device("cpu"))
     hosted = store.load([cfg.model("toy-a")])
     slot = EngineSlot(cfg.engine, torch.device("cpu"), lambda results: None)  # never started

@@ -225,16 +225,20 @@ class ExecutorIO:
             poller.register(s, zmq.POLLIN)
         while not started.is_set() and not stop.is_set():
             ready = dict(poller.poll(50))
-            if self.backend_events in ready and connected_again(self.backend_events):
-                self._hello()
-            if self.backend in ready:
-                for _ in range(256):
-                    try:
-                        frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
-                    except zmq.Again:
-                        break
-                    self._on_request(frames)
+            self._take_requests(ready)
             self._flush_unsent()
+
+    def _take_requests(self, ready: dict) -> None:
+        """Say hello again after a reconnect, and take up to 256 requests from the router (``ready``: a poll's)."""
+        if self.backend_events in ready and connected_again(self.backend_events):
+            self._hello()  # the same instance again to a router that knows it changes nothing
+        if self.backend in ready:
+            for _ in range(256):
+                try:
+                    frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    break
+                self._on_request(frames)
 
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop``; the caller then calls ``withdraw`` before stopping the engine."""
@@ -260,15 +264,7 @@ class ExecutorIO:
             self._poller.modify(self.backend, zmq.POLLIN | zmq.POLLOUT)  # woken as the pipe frees up
         else:
             self._poller.modify(self.backend, zmq.POLLIN)
-        if self.backend_events in ready and connected_again(self.backend_events):
-            self._hello()  # the same instance again to a router that knows it changes nothing
-        if self.backend in ready:
-            for _ in range(256):
-                try:
-                    frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
-                except zmq.Again:
-                    break
-                self._on_request(frames)
+        self._take_requests(ready)
         if self.ctl in ready:
             while True:
                 try:
