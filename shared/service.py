@@ -121,3 +121,15 @@ def connected_again(events: zmq.Socket) -> bool:
         except zmq.Again:
             return connected
         connected |= event["event"] == zmq.EVENT_CONNECTED
+
+
+def connection_up(events: zmq.Socket, up: bool) -> bool:
+    """Read every event a socket monitor (``sock.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)``)
+    holds; whether the connection is up after them (``up``: as it was before them)."""
+    while True:
+        try:
+            event = recv_monitor_message(events, zmq.NOBLOCK)["event"]
+        except zmq.Again:
+            return up
+        if event in (zmq.EVENT_CONNECTED, zmq.EVENT_DISCONNECTED):
+            up = event == zmq.EVENT_CONNECTED

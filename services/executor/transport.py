@@ -25,7 +25,7 @@ from shared.config import ClusterConfig, ModelConfig, dial_address, settings_dig
 from shared.metrics import ExecutorMetrics
 from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, RequestId, Timings, decode,
                              encode, error_frames, header_id, message_bytes, unpack_header)
-from shared.service import connect, connected_again
+from shared.service import connect, connected_again, connection_up
 
 log = logging.getLogger("robion.executor")
 
@@ -93,6 +93,7 @@ class ExecutorIO:
     # new table, for the requests accepted to be answered (all bounded: docker-compose gives executors 30 s
     # after SIGTERM, stop_grace_period), and how long no request may arrive before the engine is stopped.
     WITHDRAW_REPLY_S = 1.0
+    WITHDRAW_SOLVE_S = 20.0
     WITHDRAW_ACK_S = 3.0
     WITHDRAW_ANSWER_S = 5.0
     WITHDRAW_QUIET_S = 0.25
@@ -101,6 +102,7 @@ class ExecutorIO:
     # every later launch): the executor leaves routing and exits 1 for its supervisor to restart it, instead of
     # heartbeating as healthy while it answers its whole share of the fleet INTERNAL.
     FAILED_IN_ROW_FATAL = 32
+    FAILED_BATCHES_IN_ROW_FATAL = 4  # and in this many deliveries of results: one fault fails at most two at once
 
     def __init__(self, name: str, cfg: ClusterConfig, device: str, store: ModelStore, slot: EngineSlot,
                  hosted: Hosted, metrics: ExecutorMetrics | None = None, context: zmq.Context | None = None,
@@ -125,6 +127,7 @@ class ExecutorIO:
         self.fatal = threading.Event()  # serving cannot go on (a reload and its fallback failed, a sticky fault)
         self.fatal_reason = ""
         self._failed_in_row = 0  # requests the engine failed since it last answered one with actions
+        self._failed_batches_in_row = 0  # deliveries of results holding those failures
         self._poller: zmq.Poller | None = None
         self._last_beat = 0.0
         self._leaving = False  # withdraw() has begun: no re-registration, no reloads
@@ -163,6 +166,10 @@ class ExecutorIO:
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.IDENTITY, name.encode())  # the control plane addresses load requests by name
         self.ctl.setsockopt(zmq.LINGER, 0)
+        # Whether the control plane's connection is up (_ctl_connected): a message to a plane that is down is
+        # queued, not refused, so only this tells withdraw() not to wait for a drain's answer that cannot come.
+        self.ctl_events = self.ctl.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
+        self._ctl_up = False
         connect(self.ctl, dial_address(cfg.control.bind, cfg.control.connect))
 
         addr = f"inproc://executor-wake-{id(self)}"
@@ -196,6 +203,11 @@ class ExecutorIO:
         except zmq.Again:
             log.debug("control plane unreachable: %s not sent", kind)
             return False
+
+    def _ctl_connected(self) -> bool:
+        """Whether the connection to the control plane is up, from the events its monitor holds."""
+        self._ctl_up = connection_up(self.ctl_events, self._ctl_up)
+        return self._ctl_up
 
     def register(self) -> None:
         self._ctl_send("register", executor=self.name, device=self.device, instance=self.instance,
@@ -293,6 +305,7 @@ class ExecutorIO:
         now = time.monotonic()
         if now - self._last_beat >= self.cfg.control.heartbeat_s:
             self._last_beat = now
+            self._ctl_connected()  # reads the monitor's events as they come, so they never pile up
             depths = self.slot.depths()
             self._ctl_send("heartbeat", executor=self.name, depths=depths)
             self._update_gauges(depths)
@@ -329,9 +342,10 @@ class ExecutorIO:
         self._leaving = True
         self._ctl_replies.clear()
         sent = self._ctl_send("drain", executor=self.name)
-        # The control plane re-solves the traffic plan before it answers a drain, for up to its solve time limit;
-        # a drain that could not even be queued (the plane unreachable for long) is not waited for beyond that.
-        solve_s = self.cfg.control.solve_time_limit_s if sent else 0.0
+        # The control plane re-solves the traffic plan before it answers a drain, for up to its solve time limit
+        # (at most WITHDRAW_SOLVE_S of it: a container's stop grace is 30 s); a drain that could not even be queued,
+        # or went to a plane that is not connected, is not waited for beyond WITHDRAW_REPLY_S.
+        solve_s = min(self.cfg.control.solve_time_limit_s, self.WITHDRAW_SOLVE_S) if sent and self._ctl_connected() else 0.0
         reply = self._ctl_reply(("ok", "error"), solve_s + min(self.WITHDRAW_REPLY_S, ack_timeout_s))
         if reply is None:
             log.warning("control plane did not answer our drain: leaving without waiting for the router")
@@ -339,7 +353,7 @@ class ExecutorIO:
             log.info("control plane does not list us (%s): no routes to withdraw", reply.get("message"))
         else:
             version = int(reply.get("version", 0))
-            end = t0 + ack_timeout_s
+            end = time.monotonic() + ack_timeout_s  # from the answer, which may come after a long solve
             acked = False
             while not acked and time.monotonic() < end:
                 self._ctl_send("status")
@@ -463,7 +477,8 @@ class ExecutorIO:
         self._ctl_send("deregister", executor=self.name)
         self.ctl.setsockopt(zmq.LINGER, 500)
         self.backend.disable_monitor()
-        for s in (self.backend_events, self.backend, self.ctl, self.wake_rx, self.wake_tx):
+        self.ctl.disable_monitor()
+        for s in (self.backend_events, self.ctl_events, self.backend, self.ctl, self.wake_rx, self.wake_tx):
             s.close()
 
     def _update_gauges(self, depths: dict[str, int]) -> None:
@@ -508,18 +523,28 @@ class ExecutorIO:
             if rec.vlm_batch:
                 self.metrics.sm_level.set(rec.sm_level if rec.sm_level is not None else self._sm_count)
 
-    def _count_failure(self, res: Result) -> None:
+    def _count_failures(self, results: list[Result]) -> None:
         """Track the engine's failed requests in a row (before reply_frames, whose own INTERNAL answers, such as
-        non-finite actions a robot's input can cause, are no device fault); past FAILED_IN_ROW_FATAL, leave."""
-        if res.error is None:
-            self._failed_in_row = 0
-        elif res.error[0] == ErrorCode.INTERNAL:
-            self._failed_in_row += 1
-            if self._failed_in_row >= self.FAILED_IN_ROW_FATAL and not self.fatal.is_set():
-                log.critical("the engine failed %d requests in a row and answered none: the device looks "
-                             "faulted; leaving routing and exiting for a restart", self._failed_in_row)
-                self.fatal_reason = f"the engine failed {self._failed_in_row} requests in a row"
-                self.fatal.set()
+        non-finite actions a robot's input can cause, are no device fault); past FAILED_IN_ROW_FATAL requests over
+        at least FAILED_BATCHES_IN_ROW_FATAL deliveries with no answer between them, leave. One transient fault
+        fails a lockstep's two batches in one delivery, which at a large max_batch alone held 32 requests."""
+        if any(res.error is None for res in results):
+            self._failed_in_row = self._failed_batches_in_row = 0
+            return
+        failed = sum(res.error[0] == ErrorCode.INTERNAL for res in results if res.error is not None)
+        if not failed:
+            return
+        self._failed_in_row += failed
+        self._failed_batches_in_row += 1
+        faulted = (self._failed_in_row >= self.FAILED_IN_ROW_FATAL
+                   and self._failed_batches_in_row >= self.FAILED_BATCHES_IN_ROW_FATAL)
+        if faulted and not self.fatal.is_set():
+            log.critical("the engine failed %d requests in %d batches in a row and answered none: the device looks "
+                         "faulted; leaving routing and exiting for a restart", self._failed_in_row,
+                         self._failed_batches_in_row)
+            self.fatal_reason = (f"the engine failed {self._failed_in_row} requests in {self._failed_batches_in_row} "
+                                 "batches in a row")
+            self.fatal.set()
 
     def _send_results(self) -> bool:
         self._flush_unsent()
@@ -531,9 +556,9 @@ class ExecutorIO:
                 return sent
             now = time.monotonic()
             batches: dict[tuple[str, float], int] = {}
+            self._count_failures(batch)
             for res in batch:
                 r = res.request
-                self._count_failure(res)
                 self._send_reply([r.envelope, *reply_frames(res, now)])
                 self.in_flight -= 1
                 sent = True
