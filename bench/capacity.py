@@ -390,6 +390,10 @@ def main(argv: list[str] | None = None) -> int:
     models = parse_models(args.models)
     engines = parse_engines(args.engines, args.max_batch)
     deadlines = parse_deadlines(args.deadline)
+    undated = [n for n, a in models.items() if not {n, a} & deadlines.keys() and a not in PAPER_DEADLINES_MS]
+    if undated:  # before any model is built: served_models would refuse it only after the first model's run
+        p.error(f"no deadline for {', '.join(undated)}: the paper has deadlines for {', '.join(PAPER_DEADLINES_MS)}; "
+                "give one with --deadline name=ms")
     labels = [e.label for e in engines]
     baseline = args.baseline or ("monolithic" if "monolithic" in labels else None)
     if baseline is not None and baseline not in labels:

@@ -16,7 +16,14 @@ from pathlib import Path
 from shared.config import ConfigError, dial_address, parse_yaml, positive_number, solve_time_limit
 from shared.service import load_or_exit, log_level
 
-DEFAULT_DEMO = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
+def checkout_path(relative: str) -> Path:
+    """A file of the source tree (configs/, bench/): beside the package in a checkout or an editable install,
+    else under the working directory (an installed package, e.g. the image's /app, which has configs/ there)."""
+    beside = Path(__file__).resolve().parent.parent / relative
+    return beside if beside.exists() or not (Path.cwd() / relative).exists() else Path.cwd() / relative
+
+
+DEFAULT_DEMO = checkout_path("configs/demo.yaml")
 # How long `robion ctl` waits for an answer beyond the traffic re-solve that drain, resume and apply run first.
 ANSWER_MARGIN_S = 10.0
 
@@ -131,7 +138,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         for name, file in sorted(BENCHMARKS.items()):
             print(f"  {name:<12} bench/{file}", file=out)
         return 0 if asked else 2
-    script = Path(__file__).resolve().parent.parent / "bench" / BENCHMARKS[args.name]
+    script = checkout_path(f"bench/{BENCHMARKS[args.name]}")
     if not script.exists():
         print(f"benchmark script {script} is missing (run from a source checkout)", file=sys.stderr)
         return 2

@@ -22,13 +22,12 @@ SERVICES = COMPOSE["services"]
 
 
 def python_argv(service: dict) -> list[str]:
-    """The ``python -m module ...`` argv of a compose command, with the shell's ``$$(hostname)``
-    and ``$${VAR}`` (compose escapes) replaced by the values a container would give them."""
+    """The ``python -m module ...`` argv of a compose command, with ``$${VAR}`` (compose escapes) replaced by the
+    values a container would give them (Docker sets HOSTNAME in every container)."""
     cmd = service["command"]
     if cmd.startswith("sh -c "):
         cmd = shlex.split(cmd)[2]
-        env = service.get("environment", {})
-        cmd = cmd.replace("$$(hostname)", "replica-1")
+        env = {"HOSTNAME": "replica-1", **service.get("environment", {})}
         for key, value in env.items():
             cmd = cmd.replace(f"$${{{key}}}", value)
     argv = shlex.split(cmd)

@@ -284,3 +284,12 @@ def test_integer_and_boolean_tensors_take_only_their_kind_from_a_file(tmp_path):
               str(tmp_path / "ints.safetensors"))
     load_weights(m, str(tmp_path / "ints.safetensors"))
     assert m.index.tolist() == [3, 2, 1, 0] and m.keep.tolist() == [True, False, True, False]
+
+
+def test_a_size_no_architecture_has_is_a_usage_error(capsys):
+    """`robion models --size bogus` printed an empty table and exited 0."""
+    from shared.models.cli import main as models_main
+
+    assert models_main(["--size", "bogus"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "no architecture has the size 'bogus'" in err and "pi0: no size 'bogus'" in err

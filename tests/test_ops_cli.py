@@ -290,3 +290,21 @@ def test_a_benchmarks_own_refusal_is_shown_by_robion_bench():
     """`robion bench capacity` without --models exited 1 silently: the script's SystemExit message was dropped."""
     res = run("shared.cli", "bench", "capacity", "--device", "cpu")
     assert res.returncode == 1 and "--models is required" in res.stderr, res.stderr
+
+
+def test_an_installed_package_finds_the_demo_config_and_benchmarks_in_the_working_directory(tmp_path, monkeypatch):
+    """`pip install .` (the image) puts the package in site-packages, without configs/ or bench/: `robion demo`
+    without -c failed to read site-packages/configs/demo.yaml although the image has /app/configs."""
+    import shutil
+
+    from shared import cli
+
+    site = tmp_path / "site" / "shared"
+    site.mkdir(parents=True)
+    work = tmp_path / "app"
+    (work / "configs").mkdir(parents=True)
+    shutil.copy(Path(cli.__file__).parent.parent / "configs" / "demo.yaml", work / "configs" / "demo.yaml")
+    monkeypatch.setattr(cli, "__file__", str(site / "cli.py"))
+    monkeypatch.chdir(work)
+    assert cli.checkout_path("configs/demo.yaml") == work / "configs" / "demo.yaml"
+    assert cli.checkout_path("bench/capacity.py") == tmp_path / "site" / "bench" / "capacity.py"  # named as missing

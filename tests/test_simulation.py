@@ -456,6 +456,7 @@ def test_cli_sweep_runs_every_epoch_and_records_what_it_did(tmp_path):
     (["--start", "9", "--max-robots", "4"], "expected 1 <= start <= max-robots"),
     (["--target", "1.5"], "--target: expected a share"),
     (["--seed", "-1"], "--seed: expected a non-negative integer"),
+    ([], "no deadline for toy"),  # the toy is no paper model: it raised ValueError after the engines were built
 ])
 def test_cli_refuses_bad_measurement_arguments_before_building_models(args, message, capsys):
     sys.path.insert(0, os.path.join(ROOT, "bench"))

@@ -57,7 +57,8 @@ def count(n: int) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Exit status 0, or 1 when an architecture could not be described (the others are still listed)."""
+    """Exit status 0, 1 when an architecture could not be described (the others are still listed), or 2 when
+    no architecture has the size asked for."""
     ap = argparse.ArgumentParser(prog="robion models", description="List the servable VLA architectures.")
     ap.add_argument("--json", action="store_true", help="machine-readable output")
     ap.add_argument("--size", default="full", help="config size to describe (default: full)")
@@ -68,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
         info = describe(args.size, notes, errors)
     except ImportError as exc:  # a module of the user's named in ROBION_IMPORTS
         print(f"robion models: {exc}", file=sys.stderr)
+        return 2
+    if not info and not errors and notes:  # a size no listed architecture has: a mistyped --size
+        print(f"robion models: no architecture has the size {args.size!r}:", *notes, sep="\n  ", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps(info, indent=2))
