@@ -48,6 +48,10 @@ def _wait_for_signal() -> None:
         pass
 
 
+def _say(line: str) -> None:
+    print(f"  {line}", flush=True)
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from shared.cluster import LocalCluster
 
@@ -56,9 +60,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     # Ctrl-C during start-up must still stop what was started.
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
     rc = 0
+    print(f"starting the cluster from {args.config} ...", flush=True)
     try:
         t0 = time.monotonic()
-        status = cluster.start(timeout_s=args.timeout)
+        status = cluster.start(timeout_s=args.timeout, progress=_say)
         print(f"robion is up in {time.monotonic() - t0:.1f} s: robots connect to {dial_address(cfg.router.bind)}; "
               f"models {sorted(status['table']['models'])} on executors {sorted(status['executors'])}. Ctrl-C stops it.",
               flush=True)
@@ -85,7 +90,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     fleet: subprocess.Popen | None = None
     try:
-        cluster.start(timeout_s=args.timeout)
+        cluster.start(timeout_s=args.timeout, progress=_say)
         print(f"cluster ready in {time.monotonic() - t0:.1f} s; driving {cfg.fleet.robots} simulated robots at "
               f"{cfg.fleet.hz:g} Hz for {cfg.fleet.duration_s:g} s ...", flush=True)
         cmd = [sys.executable, "-m", "services.fleet.main", "--config", args.config, "--parent-pid", str(os.getpid())]

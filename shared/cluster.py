@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import zmq
 
@@ -65,19 +66,25 @@ class LocalCluster:
         # replies still go out through the router). They still exit when this process is gone (--parent-pid).
         self.procs[name] = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, start_new_session=True)
 
-    def start(self, timeout_s: float = 120.0) -> dict:
-        """Start every process and block until the control plane reports the cluster ready."""
+    def start(self, timeout_s: float = 120.0, progress: Callable[[str], None] | None = None) -> dict:
+        """Start every process and block until the control plane reports the cluster ready; ``progress`` is told
+        of each executor as it registers (an engine's start takes minutes on a GPU: graph capture, profiling)."""
         self._spawn("control", "services.controlplane.main")
         self._spawn("router", "services.router.main")
         for ex in self.cfg.executors:
             self._spawn(f"executor[{ex.name}]", "services.executor.main", "--name", ex.name)
         deadline = time.monotonic() + timeout_s
+        registered: set[str] = set()
         while time.monotonic() < deadline:
             for name, p in self.procs.items():
                 if p.poll() is not None:
                     self.stop()
                     raise RuntimeError(f"{name} exited with code {p.returncode} during start-up")
             status = control_status(dial_address(self.cfg.control.bind, self.cfg.control.connect), timeout_s=0.5)
+            for name in sorted(set((status or {}).get("executors", {})) - registered):
+                registered.add(name)
+                if progress is not None:
+                    progress(f"executor {name} is serving ({len(registered)} of {len(self.cfg.executors)})")
             if status and status.get("ready"):
                 return status
             time.sleep(0.1)

@@ -36,8 +36,11 @@ def children_of_config(path) -> list[int]:
 def start_up(path) -> subprocess.Popen:
     proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", "-c", str(path)], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    line = proc.stdout.readline()
-    assert "robion is up" in line, line
+    lines = [proc.stdout.readline() for _ in range(4)]
+    assert lines[0].startswith("starting the cluster from"), lines
+    # progress as each executor registers, in either order
+    assert {line.split()[1] for line in lines[1:3]} == {"ex0", "ex1"} and "is serving (2 of 2)" in lines[2], lines
+    assert "robion is up" in lines[3], lines
     assert len(children_of_config(path)) == 4  # control plane, router, two executors
     return proc
 
