@@ -3,6 +3,7 @@
 import json
 import sys
 
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import save_file
@@ -293,3 +294,18 @@ def test_a_size_no_architecture_has_is_a_usage_error(capsys):
     assert models_main(["--size", "bogus"]) == 2
     out, err = capsys.readouterr()
     assert out == "" and "no architecture has the size 'bogus'" in err and "pi0: no size 'bogus'" in err
+
+
+def test_the_executors_instruction_cache_holds_short_instructions_once():
+    """Every instruction was cached twice (the executor's cache and the tokenizer's own), up to 4096 characters each:
+    about 66 MB per model for a flood of distinct long instructions. Short ones are cached once now, long ones not."""
+    from services.executor.tokens import CACHED_CHARS, tokenizer_for
+
+    encode = tokenizer_for(build_model("smolvla", "tiny"))
+    short, long = "pick up the red block", "é" * (CACHED_CHARS + 1)
+    for _ in range(3):
+        a, b = encode(short), encode(long)
+    assert encode.cache_info().currsize == 1 and encode.cache_info().hits == 2
+    assert np.array_equal(encode(long), b) and not b.flags.writeable and not a.flags.writeable
+    tok = PromptTokenizer.for_model(build_model("smolvla", "tiny"))
+    assert tuple(a) == tok.ids(short) and tuple(b) == tok.ids(long)
