@@ -328,3 +328,27 @@ def test_a_swap_names_the_models_it_leaves_without_a_host():
     c, st = _serving({"ex0": ["a"], "ex1": ["b"], "ex2": ["a"]})
     steps = plan_steps(c, _applied(c, {"ex0": ["b"], "ex1": ["a"], "ex2": ["a"]}), st)
     assert [(s.executor, s.unhosted) for s in steps] == [("ex0", []), ("ex1", [])]
+
+
+def test_a_replica_outside_the_config_is_reloaded_with_the_applied_settings_of_its_models():
+    """A replica scaled out beside the config (docker-compose's `--scale executor=3`) kept serving a model's old
+    weights or deadline after an apply changed them, beside executors on the new ones, and nothing said so. It keeps
+    its model set; a model the apply removed is dropped; a change of other models leaves it alone."""
+    from services.controlplane.rollout import plan_steps
+    from shared.config import settings_digest
+
+    c, st = _serving({"ex0": ["a", "b"]})
+    st.register("replica-1", "cpu", {"a": _info(), "b": _info()}, now=0.0, instance="r-1",
+                settings={m: settings_digest(c.model(m)) for m in ("a", "b")})
+    data = {"models": [{"name": "a", "arch": "pi0", "slo_ms": 100}, {"name": "b", "arch": "pi0"}],
+            "executors": [{"name": "ex0", "models": ["a", "b"]}]}
+    steps = plan_steps(c, config_from_dict(data), st)
+    assert sorted((s.executor, [m.name for m in s.models]) for s in steps) == [("ex0", ["a", "b"]),
+                                                                               ("replica-1", ["a", "b"])]
+    assert next(s for s in steps if s.executor == "replica-1").models[0].slo_ms == 100
+    data = {"models": [{"name": "a", "arch": "pi0"}], "executors": [{"name": "ex0", "models": ["a"]}]}
+    steps = plan_steps(c, config_from_dict(data), st)
+    assert sorted((s.executor, [m.name for m in s.models]) for s in steps) == [("ex0", ["a"]), ("replica-1", ["a"])]
+    data = {"models": [{"name": "a", "arch": "pi0"}, {"name": "b", "arch": "pi0"}, {"name": "c", "arch": "xr0"}],
+            "executors": [{"name": "ex0", "models": ["a", "b"]}, {"name": "ex1", "models": ["c"]}]}
+    assert [s.executor for s in plan_steps(c, config_from_dict(data), st)] == []

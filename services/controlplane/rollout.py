@@ -14,7 +14,7 @@ import logging
 import time
 import uuid
 from dataclasses import dataclass, field, fields, is_dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 from services.controlplane.state import ClusterState
 from shared.config import ClusterConfig, ModelConfig, executor_settings, settings_digest
@@ -79,14 +79,24 @@ def restart_only_changes(old: ClusterConfig, new: ClusterConfig) -> list[str]:
     return out
 
 
+def desired_models(cfg: ClusterConfig, executor: str, serving: Iterable[str]) -> list[str] | None:
+    """The models ``executor`` should serve under ``cfg``: its own list, or for a replica outside the config (scaled
+    out beside it) the models it serves that ``cfg`` still defines, at ``cfg``'s settings; left alone, it would
+    serve old weights or deadlines beside executors on the new ones. None: nothing to change (a replica with none)."""
+    try:
+        return cfg.executor(executor).models
+    except KeyError:
+        defined = {m.name for m in cfg.models}
+        return [m for m in sorted(serving) if m in defined] or None
+
+
 def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> list[Step]:
     """The executors (registered now) whose hosted models or model settings differ in ``new``."""
     steps: list[tuple[int, int, Step]] = []
     for name, ex in state.executors.items():
-        try:
-            wanted = new.executor(name).models
-        except KeyError:
-            continue  # a replica outside the config keeps what it has
+        wanted = desired_models(new, name, ex.models)
+        if wanted is None:
+            continue
         current = set(ex.models)
 
         def changed(model: str) -> bool:

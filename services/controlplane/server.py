@@ -10,7 +10,8 @@ from typing import Any
 
 import zmq
 
-from services.controlplane.rollout import LIVE_CONTROL_FIELDS, Rollout, Step, plan_steps, restart_only_changes
+from services.controlplane.rollout import (LIVE_CONTROL_FIELDS, Rollout, Step, desired_models, plan_steps,
+                                           restart_only_changes)
 from services.controlplane.state import ClusterState
 from shared import control
 from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_text, settings_digest
@@ -160,10 +161,9 @@ class ControlPlane:
         st = self.state
         if not self.applied or settings is None or self._reconciled.get(name) == instance:
             return
-        try:
-            wanted = st.cfg.executor(name).models
-        except KeyError:
-            return  # a replica outside the config keeps what it has
+        wanted = desired_models(st.cfg, name, settings)
+        if wanted is None:
+            return
         self._reconciled[name] = instance
         if settings == {m: settings_digest(st.cfg.model(m)) for m in wanted}:
             return
