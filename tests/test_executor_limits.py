@@ -217,3 +217,22 @@ def test_a_limit_cache_that_cannot_be_written_keeps_the_measured_limit(tmp_path,
         assert cache.write("k", {"limit": 3}) is False
     assert "could not write the robot limit cache" in caplog.text
     assert cache.read() == {}
+
+
+def test_cached_limits_are_reported_for_models_another_executor_was_first_to_host(tmp_path):
+    """An apply moves toy-b to ex1; ex1's file still names ex0 as toy-b's first host, so its reload reported no
+    limit for toy-b although one was cached for those settings, and the plane planned toy-b without one. Only a
+    measurement is left to the first host."""
+    from services.executor.engine import ServedModel, resolve_kind
+    from shared.models import build_model
+
+    path, _ = cluster_config(tmp_path, control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "metrics_port": 0,
+                                                "state_dir": str(tmp_path / "state"), "limits": {"auto": True}})
+    cfg = load_config(path)  # ex0: toy-a, toy-b; ex1: toy-a
+    mc = cfg.model("toy-b")
+    key = limit_key("cpu", "toy", mc.size, mc.hz, cfg.engine.max_batch, mc.slo_ms,
+                    resolve_kind(cfg.engine.kind, CPU), cfg.control.limits.target)
+    Path(cfg.control.state_dir).mkdir(parents=True)
+    (Path(cfg.control.state_dir) / "limits.json").write_text(json.dumps({key: {"limit": 12}}))
+    served = {"toy-b": ServedModel("toy-b", build_model("toy", "tiny"), mc.slo_ms / 1e3)}
+    assert measure_limits(cfg, "ex1", served, CPU, measure=False) == {"toy-b": 12}

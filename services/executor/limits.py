@@ -111,7 +111,10 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
     cache = LimitCache(Path(cfg.control.state_dir) / "limits.json")
     known = cache.read()
     out: dict[str, int] = {}
-    for name in owned_models(cfg, executor, list(models)):
+    # Measured only by a model's first host in the config, so two executors never search for the same limit. A
+    # cached one is reported by every host: a reload after an apply moved a model to an executor that was not its
+    # first host in this process's file would otherwise report it nowhere.
+    for name in owned_models(cfg, executor, list(models)) if measure else list(models):
         mc = settings[name] if settings is not None and name in settings else cfg.model(name)
         if mc.limit is not None:
             continue
