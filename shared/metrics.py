@@ -14,7 +14,10 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, star
 
 log = logging.getLogger("robion.metrics")
 
-LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.125, 0.156, 0.2, 0.3, 0.5, 1.0, 2.5)
+# Bounds at the paper's deadlines (SmolVLA 50, GR00T 53, XR0 117, pi0 156 ms), so a p99 read from the histogram is
+# not interpolated across one.
+LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.035, 0.05, 0.053, 0.075, 0.1, 0.117, 0.125, 0.156, 0.2, 0.3,
+                   0.5, 1.0, 2.5)
 STAGE_BUCKETS = (0.0005, 0.001, 0.002, 0.004, 0.006, 0.008, 0.01, 0.015, 0.02, 0.03, 0.05, 0.1, 0.25)
 BATCH_BUCKETS = (1, 2, 4, 8, 16, 32)
 
@@ -39,9 +42,22 @@ class RouterMetrics:
         self.latency = Histogram("robion_router_request_duration_seconds",
                                  "Time from forwarding a request to an executor until its reply", ["model"],
                                  buckets=LATENCY_BUCKETS, registry=r)
+        # What robots see (less the network): every request for a served model counts, answered by an executor or by
+        # the router itself (a stalled or restarted executor, a time-out, overload, a refusal). An executor's own
+        # robion_slo_* count only what reached it, timed from when it read the request.
+        self.slo_met = Counter("robion_router_slo_met_total", "Requests for a served model answered with actions "
+                               "within its deadline, timed at the router from receipt to answer", ["model"], registry=r)
+        self.slo_missed = Counter("robion_router_slo_missed_total", "Requests for a served model answered late or "
+                                  "with an error, the router's own answers included", ["model"], registry=r)
         self.in_flight = Gauge("robion_router_in_flight_requests", "Requests forwarded and not yet answered", registry=r)
         self.table_version = Gauge("robion_router_routing_table_version", "Version of the routing table in use", registry=r)
         self.executors = Gauge("robion_router_executors", "Executors in the routing table", registry=r)
+
+    def serve_models(self, models) -> None:
+        """Give each served model its SLO series at 0 (a ratio of two counters is empty while one has no series)."""
+        for m in models:
+            self.slo_met.labels(m)
+            self.slo_missed.labels(m)
 
 
 class ExecutorMetrics:
@@ -84,20 +100,41 @@ class ExecutorMetrics:
         self.info = Gauge("robion_executor_info", "Always 1; names the executor and device of this endpoint",
                           ["executor", "device"], registry=r)
         self.gpu_memory = Gauge("robion_gpu_memory_used_bytes", "Device memory used by this executor", ["gpu"], registry=r)
-        self._recent: dict[str, deque[bool]] = {m: deque(maxlen=window) for m in models}
+        self.window = window
+        self._recent: dict[str, deque[bool]] = {}
         self.info.labels(executor, device).set(1)
-        for m in models:  # series exist from the start, so dashboards show zeros, not gaps
-            self.slo_attainment.labels(m).set(1.0)
-            self.queue_depth.labels(m).set(0)
+        self.serve_models(models)
+
+    def serve_models(self, models: dict[str, float]) -> None:
+        """The models served now (name -> deadline in seconds), at start and after each reload. The series exist
+        from the start, so dashboards show zeros, not gaps (a ratio of two counters is empty while one has none).
+        A model added, or served at another deadline, starts a fresh attainment window: the one it had before
+        describes other settings (or another time). Series of models no longer served are removed."""
+        for m in set(self._recent) - set(models):
+            del self._recent[m]
+            for metric in (self.slo_attainment, self.queue_depth):
+                try:
+                    metric.remove(m)
+                except KeyError:
+                    pass
+        for m, slo_s in models.items():
+            if m not in self._recent or self.slo_s.get(m) != slo_s:
+                self._recent[m] = deque(maxlen=self.window)
+                self.slo_attainment.labels(m).set(1.0)
+            self.queue_depth.labels(m)
+            self.slo_met.labels(m)
+            self.slo_missed.labels(m)
+        self.slo_s = dict(models)
 
     def observe_result(self, model: str, status: str, server_s: float, queue_s: float, vlm_s: float,
                        action_s: float) -> None:
         self.requests.labels(model, status).inc()
         met = status == "ok" and server_s <= self.slo_s.get(model, float("inf"))
         (self.slo_met if met else self.slo_missed).labels(model).inc()
-        recent = self._recent.setdefault(model, deque(maxlen=1000))
-        recent.append(met)
-        self.slo_attainment.labels(model).set(sum(recent) / len(recent))
+        recent = self._recent.get(model)
+        if recent is not None:  # a model a reload took away keeps its counters but gets no gauge series back
+            recent.append(met)
+            self.slo_attainment.labels(model).set(sum(recent) / len(recent))
         if status == "ok":
             self.latency.labels(model).observe(server_s)
             self.queue_wait.labels(model).observe(queue_s)

@@ -57,8 +57,13 @@ def test_metrics_endpoints_and_movement(tmp_path, engine):
         assert value(control, "robion_executors_registered") == 1
         router = scrape(rm)
         for name in ["robion_router_requests_total", "robion_router_request_duration_seconds",
-                     "robion_router_in_flight_requests", "robion_router_routing_table_version"]:
+                     "robion_router_in_flight_requests", "robion_router_routing_table_version",
+                     "robion_router_slo_met_total", "robion_router_slo_missed_total"]:
             assert f"# HELP {name}" in router, name
+        # SLO series exist at 0 before any request: a ratio of two counters is empty while one has no series
+        for text, prefix in ((before, "robion_slo"), (router, "robion_router_slo")):
+            for kind in ("met", "missed"):
+                assert re.search(rf'{prefix}_{kind}_total{{model="toy-b"}} 0\.0', text), (prefix, kind)
 
         with RobotClient(cfg.router.bind) as client:
             info = client.metadata()["toy-a"]
@@ -81,6 +86,8 @@ def test_metrics_endpoints_and_movement(tmp_path, engine):
         router = scrape(rm)
         assert value(router, "robion_router_requests_total", model="toy-a", status="ok") == 12
         assert value(router, "robion_router_request_duration_seconds_count", model="toy-a") == 12
+        assert value(router, "robion_router_slo_met_total", model="toy-a") == 12
+        assert value(router, "robion_router_slo_missed_total", model="toy-a") == 1  # the executor's SHAPE_MISMATCH
         assert re.search(r"robion_router_routing_table_version \d", router)
         if engine == "robion":  # lockstep telemetry reaches the metrics within a heartbeat
             time.sleep(0.5)
@@ -99,3 +106,33 @@ def test_dashboard_queries_only_metrics_the_services_define():
     used = {n for p in dash["panels"] for t in p["targets"] for n in re.findall(r"robion_[a-z_]+", t["expr"])}
     base = {re.sub(r"_(bucket|count|sum)$", "", n) for n in used}
     assert base <= names, base - names
+
+
+def test_the_attainment_window_starts_again_for_a_model_a_reload_adds_or_changes():
+    """The gauge kept a model's window across a reload that took it away and brought it back (or changed its deadline):
+    after an overload, a perfect run afterwards still read 7%. Its series also did not come back with the model."""
+    from shared.metrics import ExecutorMetrics
+
+    m = ExecutorMetrics("ex0", "cpu", {"a": 0.5, "b": 0.5}, window=10)
+    reg = m.registry
+
+    def ratio(model):
+        return reg.get_sample_value("robion_slo_attainment_ratio", {"model": model})
+
+    for _ in range(5):
+        m.observe_result("b", "overloaded", 0.01, 0, 0, 0)
+    m.observe_result("a", "ok", 0.01, 0, 0, 0)
+    m.observe_result("a", "ok", 0.9, 0, 0, 0)  # late
+    assert (ratio("a"), ratio("b")) == (0.5, 0.0)
+    m.serve_models({"a": 0.5})  # b moved away
+    assert ratio("b") is None and reg.get_sample_value("robion_queue_depth", {"model": "b"}) is None
+    m.observe_result("b", "ok", 0.01, 0, 0, 0)  # a straggler of the old engine: counted, but no gauge series back
+    assert ratio("b") is None and reg.get_sample_value("robion_slo_met_total", {"model": "b"}) == 1
+    m.serve_models({"a": 1.0, "b": 0.5})  # b back, a at another deadline: both start again
+    assert (ratio("a"), ratio("b")) == (1.0, 1.0)
+    m.observe_result("b", "ok", 0.01, 0, 0, 0)
+    m.observe_result("a", "ok", 0.9, 0, 0, 0)  # within a's new deadline
+    assert (ratio("a"), ratio("b")) == (1.0, 1.0)
+    m.serve_models({"a": 1.0, "b": 0.5})  # the same settings again (every heartbeat): nothing starts again
+    m.observe_result("a", "ok", 2.0, 0, 0, 0)
+    assert ratio("a") == 0.5

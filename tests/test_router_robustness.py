@@ -433,3 +433,27 @@ def test_a_request_whose_handling_fails_is_answered_internal_at_once(tmp_path, m
         robot.send_multipart(infer_frames("r2"))
         assert ex.poll(2000), "the next request never reached the executor"
         assert decode(ex.recv_multipart()[1:]).id == "r2"
+
+
+def test_the_routers_slo_counters_count_every_answer_its_own_included(tmp_path):
+    """The SLO counters operators read were the executors' alone: a request the router answered itself (the executor
+    stalled, timed out, restarted or gone) reached none, and the dashboard read near 100% while robots failed. The
+    router's count every request for a served model; the series exist at 0 before any request."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=0.3) as rt:
+        reg = rt.router.metrics.registry
+
+        def slo(kind: str, model: str = "toy-a") -> float | None:
+            return reg.get_sample_value(f"robion_router_slo_{kind}_total", {"model": model})
+
+        assert (slo("met"), slo("missed"), slo("met", "toy-b")) == (0.0, 0.0, 0.0)
+        stalled = rt.executor(b"ex0")  # connected, never answers
+        robot = rt.robot(b"arm")
+        rep = ask(robot, infer_frames("late"), timeout_s=5.0)
+        assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.UNAVAILABLE
+        assert (slo("met"), slo("missed")) == (0.0, 1.0)
+        stalled.close()
+        rt.socks.remove(stalled)
+        rt.answering_executor(b"ex0")
+        assert isinstance(ask(robot, infer_frames("ok")), InferReply)
+        assert isinstance(ask(robot, infer_frames("bad", model="nope")), ErrorReply)  # not served: no series
+        assert (slo("met"), slo("missed"), slo("met", "nope")) == (1.0, 1.0, None)

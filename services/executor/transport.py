@@ -113,7 +113,6 @@ class ExecutorIO:
         self.store = store
         self.slot = slot
         self.served: dict[str, ServedInput] = hosted.inputs  # replaced whole on a reload, never mutated
-        self._gauged: set[str] = set(self.served)  # models with per-model gauge series
         self.limits = limits or {}  # measured robot limits of the models this executor owns
         # Names this process: a registration with another token is a restarted executor (a rollout
         # step waiting on this executor's reload must then send the load again).
@@ -424,7 +423,6 @@ class ExecutorIO:
                 self.fatal_reason = "no models could be loaded after a failed reload"
                 self.fatal.set()  # the I/O loop ends within one poll; main then withdraws and exits 1
                 return
-        self.metrics.slo_s = {n: s.slo_s for n, s in hosted.inputs.items()}
         if self.cfg.control.limits.auto:
             # A limit holds for the settings it was measured at (rate, deadline): the start-up ones no longer
             # describe models whose settings the reload changed, nor those it added or removed. Cached ones
@@ -482,19 +480,14 @@ class ExecutorIO:
             s.close()
 
     def _update_gauges(self, depths: dict[str, int]) -> None:
-        served = set(self.served)
-        for model in self._gauged - served:
-            # A reload took the model away: its series would show their last values forever.
-            for gauge in (self.metrics.queue_depth, self.metrics.slo_attainment):
-                try:
-                    gauge.remove(model)
-                except KeyError:
-                    pass
+        # On this thread, which alone records results: a reload's new model set (and deadlines) takes effect in the
+        # metrics here; the series of a model it took away would show their last values forever.
+        served = self.served
+        self.metrics.serve_models({n: s.slo_s for n, s in served.items()})
         # A model with no engine queue (its engine is being replaced) holds nothing: whatever
         # it held was answered when the old engine stopped.
         for model in served:
             self.metrics.queue_depth.labels(model).set(depths.get(model, 0))
-        self._gauged = served
         self._observe_locksteps()
         if self.device.startswith("cuda"):
             import torch

@@ -72,6 +72,7 @@ class Router:
         self.in_flight: dict[FlightKey, InFlight] = {}
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
         self.metrics = RouterMetrics()
+        self.metrics.serve_models(self._configured)
         serve(self.metrics.registry, cfg.router.metrics_port)
         limit = cfg.router.max_message_bytes
 
@@ -193,7 +194,10 @@ class Router:
     def _reply_error(self, robot: bytes, rid: RequestId, code: ErrorCode, message: str, model: str = "") -> None:
         self.stats["errors"] += 1
         # Only served model names become label values: robots cannot grow the series count.
-        self.metrics.requests.labels(model if self._serves(model) else "", code.value.lower()).inc()
+        served = self._serves(model)
+        self.metrics.requests.labels(model if served else "", code.value.lower()).inc()
+        if served:  # an answer without actions: the robot's request failed, whoever failed it
+            self.metrics.slo_missed.labels(model).inc()
         self.frontend.send_multipart([robot, *error_frames(rid, code, message)], copy=False)
 
     def _answer_fault(self, frames: list[zmq.Frame]) -> None:
@@ -259,9 +263,10 @@ class Router:
             return self._reply_error(robot, rid, ErrorCode.UNKNOWN_MODEL, f"model {model!r} is not served")
         key = flight_key(robot, rid)
         if key in self.in_flight:
-            return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, f"id: request {rid!r} is already in flight")
+            return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, f"id: request {rid!r} is already in flight",
+                                     model)
         if len(self.in_flight) >= MAX_IN_FLIGHT:
-            return self._reply_error(robot, rid, ErrorCode.OVERLOADED, "too many requests in flight")
+            return self._reply_error(robot, rid, ErrorCode.OVERLOADED, "too many requests in flight", model)
         self.stats["requests"] += 1
         full: list[str] = []
         # A robot is pinned by its name, not its connection: two clients of one robot (and one restarted with a
@@ -319,8 +324,12 @@ class Router:
         status = "ok" if header.get("kind") == "reply" else str(header.get("code", "internal")).lower()
         self.metrics.requests.labels(flight.model, status).inc()
         self.metrics.in_flight.set(len(self.in_flight))
+        took = time.monotonic() - flight.sent_at
+        info = self.routing.table.models.get(flight.model)
+        met = status == "ok" and (info is None or took <= info.deadline_ms / 1e3)
+        (self.metrics.slo_met if met else self.metrics.slo_missed).labels(flight.model).inc()
         if status == "ok":
-            self.metrics.latency.labels(flight.model).observe(time.monotonic() - flight.sent_at)
+            self.metrics.latency.labels(flight.model).observe(took)
         self.frontend.send_multipart([robot, *body], copy=False)
 
     def _expire(self, now: float) -> None:
@@ -412,6 +421,7 @@ class Router:
                 gone = self.routing.update(table)
                 self.metrics.table_version.set(table.version)
                 self.metrics.executors.set(len({e for ex in table.routes.values() for e in ex}))
+                self.metrics.serve_models(table.models)
                 log.info("routing table v%d: %s", table.version,
                          {m: e for m, e in table.routes.items()})
                 for executor in gone:
