@@ -139,3 +139,40 @@ def test_a_request_that_cannot_be_sent_fails_alone_and_idle_models_are_not_repor
     assert a.sent == router.answered > 0 and a.errors == {"UNAVAILABLE": a.sent}
     assert wide.sent > 0 and wide.replies == 0 and wide.errors == {"BAD_REQUEST": wide.sent}, wide.errors
     assert wide.slo_attainment == 0
+
+
+def test_latency_counts_from_the_scheduled_send_and_a_late_sender_is_reported(tmp_path, monkeypatch):
+    """A host too slow for its fleet sends late. Latency was timed from the actual send, so that lag was in no number
+    and the report looked healthy; it counts from the robot's schedule now, and the report says how late it sent."""
+    import time
+
+    import numpy as np
+
+    from shared.client import RobotClient
+
+    class Answering(HalfDeafRouter):
+        def answer(self, msg):
+            if isinstance(msg, protocol.Hello):
+                return super().answer(msg)
+            info = protocol.ModelInfo.from_wire(TOY_INFO)
+            return protocol.InferReply(id=msg.id, model=msg.model,
+                                       actions=np.zeros((info.horizon, info.action_dim), np.float32))
+
+    submit = RobotClient.submit
+
+    def slow_submit(self, *args, **kwargs):
+        time.sleep(0.03)  # 4 robots at 10 Hz need a send every 25 ms
+        return submit(self, *args, **kwargs)
+
+    monkeypatch.setattr(RobotClient, "submit", slow_submit)
+    (port,) = free_ports(1)
+    router = Answering(f"tcp://127.0.0.1:{port}")
+    try:
+        report = run_fleet(f"tcp://127.0.0.1:{port}", robots=4, hz=10, duration_s=1.0, network="none")
+    finally:
+        router.close()
+    r = report.models["toy-a"]
+    assert r.replies == r.sent > 0 and r.send_lag_max_ms > 50
+    assert r.p99_ms >= r.send_lag_p99_ms  # each request's latency includes how late it left
+    assert "this host sent requests up to" in report.table()
+    assert report.to_dict()["models"]["toy-a"]["send_lag_max_ms"] == r.send_lag_max_ms

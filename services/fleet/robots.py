@@ -17,6 +17,7 @@ from shared.netmodel import NETWORKS
 log = logging.getLogger("robion.fleet")
 
 INSTRUCTIONS = ["pick up the red block", "open the drawer", "put the bowl on the plate", "stack the cups"]
+LATE_SEND_WARN_MS = 5.0  # a send this late is worth a note under the report
 
 
 @dataclass
@@ -31,6 +32,10 @@ class ModelReport:
     p50_ms: float = 0.0
     p99_ms: float = 0.0
     server_p50_ms: float = 0.0
+    # How late this process sent its robots' requests (a host too slow for the fleet it drives). Latencies count
+    # from the scheduled send, so the lag is in them, as a robot whose request left late would see it.
+    send_lag_p99_ms: float = 0.0
+    send_lag_max_ms: float = 0.0
 
 
 @dataclass
@@ -45,10 +50,16 @@ class FleetReport:
         return asdict(self)
 
     def table(self) -> str:
-        rows = [f"{'model':<16}{'robots':>7}{'sent':>7}{'ok':>7}{'errors':>8}{'SLO ms':>8}{'SLO-AT':>9}{'p50 ms':>9}{'p99 ms':>9}"]
+        rows = [f"{'model':<16}{'robots':>7}{'sent':>7}{'ok':>7}{'errors':>8}{'SLO ms':>8}{'SLO-AT':>9}{'p50 ms':>9}"
+                f"{'p99 ms':>9}"]
         for r in self.models.values():
-            rows.append(f"{r.model:<16}{r.robots:>7}{r.sent:>7}{r.replies:>7}{sum(r.errors.values()):>8}{r.slo_ms:>8.0f}"
+            rows.append(f"{r.model:<16}{r.robots:>7}{r.sent:>7}{r.replies:>7}{sum(r.errors.values()):>8}{r.slo_ms:>8g}"
                         f"{100 * r.slo_attainment:>8.1f}%{r.p50_ms:>9.1f}{r.p99_ms:>9.1f}")
+        late = max((r.send_lag_max_ms for r in self.models.values()), default=0.0)
+        if late > LATE_SEND_WARN_MS:
+            rows.append(f"note: this host sent requests up to {late:.0f} ms after their time (p99 "
+                        f"{max(r.send_lag_p99_ms for r in self.models.values()):.1f} ms); latencies count from the "
+                        "scheduled send, so the lag is in them: drive fewer robots per fleet process")
         return "\n".join(rows)
 
 
@@ -104,6 +115,8 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
     next_send = [start + rng.uniform(0, period) for _ in range(robots)]
     end = start + duration_s
     sent: dict[str, list[str]] = {m: [] for m in models}
+    scheduled: dict[str, float] = {}  # request id -> when its robot was to send it
+    lag: dict[str, list[float]] = {m: [] for m in models}
     done: dict[str, Completion] = {}
     while True:
         now = time.monotonic()
@@ -111,13 +124,15 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
             while next_send[i] <= now and next_send[i] < end:
                 model, images, state, text = obs[i]
                 try:
-                    sent[model].append(c.submit(model, images, state, text))
+                    rid = c.submit(model, images, state, text)
                 except RobionError as exc:
                     # Not sent (send queue full with the router unreachable, a request the router would
                     # refuse): that request failed, not the run. It counts as sent with its error.
-                    key = f"unsent-{i}-{next_send[i]}"
-                    sent[model].append(key)
-                    done[key] = Completion(request_id=key, model=model, sent_at=now, received_at=now, error=exc)
+                    rid = f"unsent-{i}-{next_send[i]}"
+                    done[rid] = Completion(request_id=rid, model=model, sent_at=now, received_at=now, error=exc)
+                sent[model].append(rid)
+                scheduled[rid] = next_send[i]
+                lag[model].append(time.monotonic() - next_send[i])
                 next_send[i] += period  # on the robot's clock, whether or not a reply came
         upcoming = min((t for t in next_send if t < end), default=None)
         if upcoming is None:
@@ -137,7 +152,9 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
         ids = sent[model]
         comps = [done[i] for i in ids if i in done]
         ok = [c for c in comps if c.ok]
-        e2e = np.array([(c.latency_s + net.latency_s(c.request_bytes, c.reply_bytes)) * 1e3 for c in ok])
+        e2e = np.array([(c.received_at - scheduled[c.request_id] + net.latency_s(c.request_bytes, c.reply_bytes)) * 1e3
+                        for c in ok])
+        late = np.array(lag[model]) * 1e3
         server = np.array([c.timings.server_ms for c in ok])
         met = int((e2e <= info.deadline_ms).sum()) if len(e2e) else 0
         # A reply the SDK gave up on (RequestTimeout, code UNAVAILABLE) is as lost as one still awaited when
@@ -152,5 +169,7 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
             errors=dict(errors), slo_ms=info.deadline_ms, slo_attainment=met / len(ids) if ids else 0.0,
             p50_ms=float(np.percentile(e2e, 50)) if len(e2e) else float("nan"),
             p99_ms=float(np.percentile(e2e, 99)) if len(e2e) else float("nan"),
-            server_p50_ms=float(np.percentile(server, 50)) if len(server) else float("nan"))
+            server_p50_ms=float(np.percentile(server, 50)) if len(server) else float("nan"),
+            send_lag_p99_ms=float(np.percentile(late, 99)) if len(late) else 0.0,
+            send_lag_max_ms=float(late.max()) if len(late) else 0.0)
     return FleetReport(network=network, robots=robots, hz=hz, duration_s=duration_s, models=reports)
