@@ -288,3 +288,33 @@ def test_the_control_plane_plans_what_robion_plan_prints_for_its_config():
     names = [e.name for e in cfg.executors]
     printed = {m: {names[j]: n for j, n in per_gpu.items() if n} for m, per_gpu in plan.assignment.items()}
     assert st.table.quotas == printed == {"A": {"ex1": 2}}, (st.table.quotas, printed)
+
+
+def test_a_model_the_config_drops_leaves_no_robots_assigned_series(tmp_path):
+    """An apply that removed toy-b kept robion_robots_assigned{model="toy-b"} at 0 for every configured executor."""
+    from services.controlplane.server import ControlPlane
+    from shared.config import config_from_dict, load_config
+    from shared.protocol import ModelInfo
+
+    path, data = cluster_config(tmp_path, models=models({"robots": 4, "limit": 4}, {"robots": 2, "limit": 4}))
+    data["control"]["metrics_port"] = 0
+    path.write_text(yaml.safe_dump(data))
+    plane = ControlPlane(load_config(path))
+    try:
+        info = ModelInfo.from_wire(INFO)
+        plane.state.register("ex0", "cpu", {"toy-a": info, "toy-b": info}, instance="x")
+        plane._update_metrics()
+
+        def assigned() -> set:
+            return {tuple(s.labels.values()) for m in plane.metrics.registry.collect()
+                    if m.name == "robion_robots_assigned" for s in m.samples}
+
+        assert ("toy-b", "ex0") in assigned()
+        data["models"] = data["models"][:1]
+        for ex in data["executors"]:
+            ex["models"] = ["toy-a"]
+        plane.state.replace_config(config_from_dict(data))
+        plane._update_metrics()
+        assert {m for m, _ in assigned()} == {"toy-a"}
+    finally:
+        plane.sock.close(0)

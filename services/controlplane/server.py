@@ -140,9 +140,9 @@ class ControlPlane:
         populated = {m.name for m in self.state.cfg.models if m.robots > 0}
         placed = {(m, e.name) for e in self.state.cfg.executors for m in e.models if m in populated}
         for model, ex in (self._assigned | placed) - published:
-            if ex in configured:
+            if ex in configured and model in populated:
                 self.metrics.robots_assigned.labels(model, ex).set(0)
-                published.add((model, ex))  # kept (at 0) until the config drops the executor
+                published.add((model, ex))  # kept (at 0) until the config drops the executor or the model
             else:
                 self.metrics.robots_assigned.remove(model, ex)
         self._assigned = published
