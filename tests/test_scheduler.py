@@ -201,6 +201,7 @@ def test_engine_with_shed_late_answers_a_hopeless_request_deadline_exceeded_at_o
     assert estimate > 0 and all(r.actions is not None for r in results)
     # One step on this thread right after the submit, so the request is still short of its deadline when taken.
     eng.queues.reopen()  # the loop's finish closed the queues; from here the test is the engine's loop
+    eng.queues.note_service("toy", estimate)  # a new run starts its window afresh: the one measured above, again
     now = time.monotonic()
     # It waited (arrived an estimate ago) and is due before a batch can finish: could have made it, cannot now.
     eng.submit(req("toy", "hopeless", now - estimate, now + estimate / 2))
@@ -208,3 +209,67 @@ def test_engine_with_shed_late_answers_a_hopeless_request_deadline_exceeded_at_o
     last = results[-1]
     assert last.request.id == "hopeless" and last.actions is None
     assert last.error[0] == ErrorCode.DEADLINE_EXCEEDED and "cannot be met" in last.error[1], last.error
+
+
+def test_a_queue_full_of_late_requests_takes_a_fresh_one_and_answers_the_late_at_the_next_take():
+    """Expired requests left the queue only at take(): during a long lockstep or a stall, a queue full of requests
+    already past their deadline refused fresh ones that could still make it (OVERLOADED)."""
+    q = ModelQueues(["a"], max_queue=2)
+    now = time.monotonic()
+    q.put(req("a", "old1", now - 1.0, now - 0.5))
+    q.put(req("a", "old2", now - 1.0, now - 0.5))
+    q.put(req("a", "fresh", now, now + 60.0))
+    assert q.depths() == {"a": 1} and q.wait(0.0)
+    model, batch, expired = q.take(2)
+    assert [r.id for r in batch] == ["fresh"] and sorted(r.id for r in expired) == ["old1", "old2"]
+    without = ModelQueues(["a"], max_queue=1, shed_expired=False)  # nothing is shed: full is full
+    without.put(req("a", "old", now - 1.0, now - 0.5))
+    with pytest.raises(ProtocolError) as exc:
+        without.put(req("a", "fresh", now, now + 60.0))
+    assert exc.value.code == ErrorCode.OVERLOADED
+
+
+def test_requests_a_full_queue_shed_are_answered_at_shutdown_too():
+    q = ModelQueues(["a"], max_queue=1)
+    now = time.monotonic()
+    q.put(req("a", "old", now - 1.0, now - 0.5))
+    q.put(req("a", "fresh", now, now + 60.0))
+    assert sorted(r.id for r in q.close()) == ["fresh", "old"]
+
+
+def test_a_new_run_of_the_engine_starts_shed_late_afresh():
+    """The service-time window outlived finish()/run(): an engine reused for the next epoch or capacity point shed
+    feasible requests by how slow the overloaded point before had been."""
+    q = ModelQueues(["a"], shed_late=True)
+    now = time.monotonic()
+    for _ in range(8):
+        q.note_service("a", 0.18, now=now)
+    assert q.service_estimate("a", now=now) == pytest.approx(0.18)
+    q.close()
+    q.reopen()
+    assert q.service_estimate("a", now=now) == 0.0
+    q.put(req("a", "r", now, now + 0.1))
+    assert [r.id for r in q.take(1, now=now)[1]] == ["r"]
+
+
+def test_a_sink_that_fails_on_the_shed_answers_does_not_lose_the_batch_taken_with_them():
+    """The monolithic engine handed the shed requests to the sink unguarded: a fault there raised out of its step,
+    and the batch taken in the same take() was never run nor answered."""
+    model = build_model("toy", "tiny")
+    answered: list[str] = []
+
+    def sink(results):
+        if any(r.error is not None for r in results):
+            raise RuntimeError("the I/O layer failed")
+        answered.extend(r.request.id for r in results)
+
+    eng = MonolithicEngine({"toy": ServedModel("toy", model, 60.0)}, EngineConfig(max_batch=2), torch.device("cpu"),
+                           sink)
+    images, state, tokens = model.example_inputs(1)
+    now = time.monotonic()
+    for rid, deadline in (("late", now - 1.0), ("fine", now + 60.0)):
+        eng.queues.put(Request(id=rid, robot="r", model="toy", images=images[0].numpy(), state=state[0].numpy(),
+                               tokens=tokens[0].numpy(), arrival=now - 2.0, deadline=deadline,
+                               noise=model.noise(1)[0].numpy()))
+    assert eng.step()
+    assert answered == ["fine"]

@@ -97,12 +97,21 @@ class Engine:
     def finish(self) -> None:
         """Answer everything still queued at shutdown; later submits are refused (UNAVAILABLE)."""
         pending = self.queues.close()
-        if pending:
-            self.on_results([Result(r, error=(ErrorCode.UNAVAILABLE, "executor is shutting down")) for r in pending])
+        self._emit([Result(r, error=(ErrorCode.UNAVAILABLE, "executor is shutting down")) for r in pending])
+
+    def _emit(self, results: list[Result]) -> None:
+        """Hand results to the sink. Its fault (the I/O layer's) must neither stop the engine's loop nor lose the
+        results handed over after it in the same step: a raise here took a batch's answers with it (and, in a
+        lockstep, raised into its step between the launch and the end of its batches)."""
+        if not results:
+            return
+        try:
+            self.on_results(results)
+        except Exception:
+            log.exception("result sink failed")
 
     def _report_expired(self, expired: list[Request]) -> None:
-        if expired:
-            self.on_results(self._expired_results(expired))
+        self._emit(self._expired_results(expired))
 
     def _expired_results(self, expired: list[Request]) -> list[Result]:
         """DEADLINE_EXCEEDED for requests the queues shed: late already, or too late to make it (shed_late)."""
@@ -186,10 +195,10 @@ class MonolithicEngine(Engine):
                 vlm_ms, act_ms = (t_vlm - admitted) * 1e3, (t_act - t_vlm) * 1e3
         except Exception as exc:
             log.exception("batch of %d for %s failed", len(batch), model)
-            self.on_results([Result(r, error=(ErrorCode.INTERNAL, f"inference failed: {type(exc).__name__}"))
-                             for r in batch])
+            self._emit([Result(r, error=(ErrorCode.INTERNAL, f"inference failed: {type(exc).__name__}"))
+                        for r in batch])
             return True
-        self.on_results([Result(r, actions=actions[i], admitted=admitted, vlm_s=t_vlm - admitted,
+        self._emit([Result(r, actions=actions[i], admitted=admitted, vlm_s=t_vlm - admitted,
                                 action_s=t_act - t_vlm, done=t_act, lockstep=self._index) for i, r in enumerate(batch)])
         self._record(model, len(batch), admitted, vlm_ms, act_ms)
         return True

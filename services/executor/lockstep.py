@@ -814,18 +814,6 @@ class LockstepEngine(Engine):
             launch_us=done.launch_us, ahead=done.ahead, lead_us=done.lead_us,
             admit_early_us=done.admit_early_us, slack_us=done.slack_us, wake_late_us=done.wake_late_us))
 
-    def _report_expired(self, expired: list[Request]) -> None:
-        # Through ``_emit``: a failing sink must not raise into ``_step`` between a lockstep's
-        # launch and its end (that lockstep's batches would go unanswered).
-        if expired:
-            self._emit(self._expired_results(expired))
-
-    def _emit(self, results: list[Result]) -> None:
-        try:
-            self.on_results(results)
-        except Exception:  # the I/O layer's fault must not stop the GPU loop
-            log.exception("result sink failed")
-
     def _fail(self, batches: list[_Batch], exc: Exception) -> None:
         log.error("lockstep %d failed: %r", self._index, exc)
         # A batch can fail twice (a failed action part issued ahead, then its VLM lockstep's wait on a

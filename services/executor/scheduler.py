@@ -110,12 +110,16 @@ class ServiceTimes:
         ordered = sorted(self._recent)
         self._estimate = ordered[min(len(ordered) - 1, int(self.QUANTILE * len(ordered)))]
 
+    def clear(self) -> None:
+        self._recent.clear()
+        self._estimate = 0.0
+        self._last = float("-inf")
+
     def estimate(self, now: float | None = None) -> float:
         """0 until a reply has been seen, and again once the last one is older than STALE_S."""
         now = time.monotonic() if now is None else now
         if now - self._last > self.STALE_S:
-            self._recent.clear()
-            self._estimate = 0.0
+            self.clear()
         return self._estimate
 
 
@@ -143,6 +147,7 @@ class ModelQueues:
         self._service = {m: ServiceTimes() for m in models} if shed_late else {}
         self._cond = threading.Condition()
         self._pending = 0
+        self._shed: list[Request] = []  # expired requests a full queue gave up at put: answered at the next take
         # Closed once the engine's loop has ended: nothing would ever take a request put then.
         self._closed = False
 
@@ -172,6 +177,15 @@ class ModelQueues:
             q = self._queues.get(req.model)
             if q is None:
                 raise ProtocolError(ErrorCode.UNKNOWN_MODEL, f"model {req.model!r} is not served by this executor")
+            if len(q) >= self._max_queue and self._shed_expired:
+                # Full of requests already late (a long lockstep, a stall): those are shed now, not at the next take,
+                # or they would turn away requests that can still make it. Late by the new request's arrival: the
+                # clock its I/O layer (or a harness's virtual time) stamps requests with.
+                while q and q[0].deadline <= req.arrival:
+                    self._shed.append(q.popleft())
+                    self._pending -= 1
+                if self._shed:
+                    self._cond.notify()  # the engine answers them at its next take
             if len(q) >= self._max_queue:
                 raise ProtocolError(ErrorCode.OVERLOADED, f"queue of {req.model!r} is full ({self._max_queue} requests)")
             q.append(req)
@@ -181,9 +195,9 @@ class ModelQueues:
     def wait(self, timeout: float) -> bool:
         """Block until a request is pending or ``timeout`` passes; True when one is pending."""
         with self._cond:
-            if self._pending == 0:
+            if self._pending == 0 and not self._shed:
                 self._cond.wait(timeout)
-            return self._pending > 0
+            return self._pending > 0 or bool(self._shed)
 
     def take(self, max_batch: int, now: float | None = None) -> tuple[str, list[Request], list[Request]]:
         """Pick a queue by the policy and dequeue a power-of-two batch from it.
@@ -193,8 +207,8 @@ class ModelQueues:
         separately, so they cost no GPU time.
         """
         now = time.monotonic() if now is None else now
-        expired: list[Request] = []
         with self._cond:
+            expired, self._shed = self._shed, []
             if self._shed_expired:
                 for model, q in self._queues.items():
                     times = self._service.get(model)
@@ -228,9 +242,10 @@ class ModelQueues:
     def drain(self) -> list[Request]:
         """Remove and return everything pending (shutdown: each still gets an answer)."""
         with self._cond:
-            out = [r for q in self._queues.values() for r in q]
+            out = [r for q in self._queues.values() for r in q] + self._shed
             for q in self._queues.values():
                 q.clear()
+            self._shed = []
             self._pending = 0
             return out
 
@@ -243,6 +258,9 @@ class ModelQueues:
             return self.drain()
 
     def reopen(self) -> None:
-        """Take requests again: an engine loop (re)starts (the capacity harness runs one engine per epoch)."""
+        """Take requests again: an engine loop (re)starts (the capacity harness runs one engine per epoch). The
+        service times measured before describe another run: a reused engine shed feasible requests by them."""
         with self._cond:
             self._closed = False
+            for times in self._service.values():
+                times.clear()

@@ -344,7 +344,8 @@ class ExecutorIO:
         # The control plane re-solves the traffic plan before it answers a drain, for up to its solve time limit
         # (at most WITHDRAW_SOLVE_S of it: a container's stop grace is 30 s); a drain that could not even be queued,
         # or went to a plane that is not connected, is not waited for beyond WITHDRAW_REPLY_S.
-        solve_s = min(self.cfg.control.solve_time_limit_s, self.WITHDRAW_SOLVE_S) if sent and self._ctl_connected() else 0.0
+        answerable = sent and self._ctl_connected()
+        solve_s = min(self.cfg.control.solve_time_limit_s, self.WITHDRAW_SOLVE_S) if answerable else 0.0
         reply = self._ctl_reply(("ok", "error"), solve_s + min(self.WITHDRAW_REPLY_S, ack_timeout_s))
         if reply is None:
             log.warning("control plane did not answer our drain: leaving without waiting for the router")

@@ -321,14 +321,6 @@ class InterDisaggEngine(Engine):
                 if w.thread.is_alive():
                     log.error("interdisagg %s worker %d did not stop within %.0f s", w.role, w.index, timeout_s)
 
-    def _emit(self, results: list[Result]) -> None:
-        if not results:
-            return
-        try:
-            self.on_results(results)
-        except Exception:  # a failing sink must not kill a worker
-            log.exception("result sink failed")
-
     def _fail(self, batch: list[Request], exc: Exception) -> None:
         self._emit([Result(r, error=(ErrorCode.INTERNAL, f"inference failed: {type(exc).__name__}")) for r in batch])
 

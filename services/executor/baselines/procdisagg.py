@@ -697,14 +697,6 @@ class ProcDisaggEngine(Engine):
                 self._drained.notify_all()
         self._emit(out)
 
-    def _emit(self, results: list[Result]) -> None:
-        if not results:
-            return
-        try:
-            self.on_results(results)
-        except Exception:
-            log.exception("result sink failed")
-
     def finish(self, timeout_s: float = 30.0) -> None:
         """Answer everything queued (UNAVAILABLE); requests already in the stages complete normally."""
         super().finish()
