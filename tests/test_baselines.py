@@ -295,3 +295,85 @@ def test_procdisagg_vlm_failure_returns_its_handoff_slot_and_input_slot():
         stop.set()
         th.join(60)
         eng.close()
+
+
+def running_procdisagg(models: dict, **cfg):
+    """A prepared procdisagg engine (max_batch 2, 5 s deadlines) with its loop running: engine, sink, stop, loop."""
+    from services.executor.engine import make_engine
+
+    sink = Sink()
+    eng = make_engine({n: ServedModel(n, m, 5.0) for n, m in models.items()},
+                      EngineConfig(kind="procdisagg", max_batch=2, **cfg), CPU, sink)
+    eng.prepare()
+    stop = threading.Event()
+    loop = threading.Thread(target=eng.run, args=(stop,), daemon=True)
+    loop.start()
+    return eng, sink, stop, loop
+
+
+def test_procdisagg_notices_a_stage_process_killed_from_outside():
+    """A stage process killed from outside (the OOM killer, a signal) reported nothing: its requests waited until
+    shutdown, the front could wait for its input slots for good, and a start-up waited out 600 s. Its exit is now
+    the report: what it held is answered INTERNAL at once, and the engine's loop ends (an executor then leaves
+    routing for a restart instead of refusing its share of the fleet)."""
+    import os
+    import signal
+
+    from shared.protocol import ProtocolError
+
+    m = build_model("toy", "tiny", seed=1)
+    eng, sink, stop, loop = running_procdisagg({"toy": m})
+    rng = np.random.default_rng(0)
+    try:
+        eng.submit(make_req(m, "toy", "warm", rng))
+        sink.wait(1, 30)
+        assert [r.error for r in sink.results] == [None]
+        action = next(p for p in eng._procs if "action" in p.name)
+        os.kill(action.pid, signal.SIGKILL)
+        action.join(10)
+        refused = 0
+        for i in range(6):
+            try:
+                eng.submit(make_req(m, "toy", f"r{i}", rng))
+            except ProtocolError:  # the loop has ended already: refused at once, also an answer
+                refused += 1
+        sink.wait(1 + 6 - refused, 10)
+        assert len(sink.results) == 1 + 6 - refused, f"{len(sink.results) - 1} of {6 - refused} answered"
+        assert all(r.error is not None and r.actions is None for r in sink.results[1:])
+        loop.join(10)
+        assert not loop.is_alive(), "the engine's loop went on without its action process"
+    finally:
+        stop.set()
+        loop.join(10)
+        eng.close()
+    assert not any(p.is_alive() for p in eng._procs)
+
+
+def test_procdisagg_inspection_time_is_each_models_own(monkeypatch):
+    """inspect_us (the action process's inspection and packing per step, which characterises this design) was timed
+    from the start of a round over all models: the second model's included the first one's denoising step."""
+    from services.executor.baselines import stepping
+
+    real = stepping.ToyAdapter.step
+
+    def slow(self, S, n):  # a model whose denoising step takes 20 ms
+        time.sleep(0.02)
+        return real(self, S, n)
+
+    monkeypatch.setattr(stepping.ToyAdapter, "step", slow)
+    models = {"a": build_model("toy", "tiny", seed=1), "b": build_model("toy", "tiny", seed=2)}
+    eng, sink, stop, loop = running_procdisagg(models, procdisagg_workers="thread")
+    rng = np.random.default_rng(0)
+    try:
+        for i in range(6):
+            for n in models:
+                eng.submit(make_req(models[n], n, f"{n}{i}", rng))
+        sink.wait(12, 60)
+    finally:
+        stop.set()
+        loop.join(30)
+        eng.close()
+    assert len(sink.results) == 12
+    for n in models:
+        inspect = [r.inspect_us for r in eng.telemetry.records() if r.model == n]
+        assert inspect and float(np.median(inspect)) < 10_000, (n, inspect)  # far below a 20 ms step

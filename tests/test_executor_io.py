@@ -546,3 +546,17 @@ def test_a_shutdown_does_not_wait_out_the_solve_limit_of_a_control_plane_that_is
     t0 = time.monotonic()
     h.io.withdraw(ack_timeout_s=0.5, answer_timeout_s=0.5)
     assert time.monotonic() - t0 < 5
+
+
+def test_an_executor_whose_engine_loop_ends_on_a_fault_leaves(harness):
+    """procdisagg's loop ends when a stage dies. The executor stayed registered and heartbeating, refusing its whole
+    share of the fleet UNAVAILABLE (which no failure count sees); it now leaves for a restart at its next heartbeat."""
+    h = harness(engine={"kind": "procdisagg", "procdisagg_workers": "thread", "max_batch": 2},
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0})
+    h.send(h.request("before"))
+    h.wait_replies(["before"])
+    assert getattr(h.replies["before"], "actions", None) is not None
+    h.slot.engine._handle(("fatal", "action process: stand-in for a stage that died"))
+    h.thread.join(10)
+    assert not h.thread.is_alive() and h.io.fatal.is_set(), "the executor stayed up with no engine loop"
+    assert "engine's loop ended" in h.io.fatal_reason

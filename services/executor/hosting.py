@@ -120,6 +120,14 @@ class EngineSlot:
         if close is not None:  # engines with worker processes (procdisagg) stop them here
             close()
 
+    def failed(self) -> bool:
+        """The engine's loop ended without a stop (a fault it could not go on from, e.g. a stage process of
+        procdisagg that died): every request would be refused from now on."""
+        with self._lock:
+            engine = self.engine
+        return engine is not None and self._thread is not None and not self._thread.is_alive() and \
+            not self._stop.is_set()
+
     def submit(self, req: Request) -> None:
         with self._lock:
             engine = self.engine

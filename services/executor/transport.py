@@ -305,6 +305,11 @@ class ExecutorIO:
         if now - self._last_beat >= self.cfg.control.heartbeat_s:
             self._last_beat = now
             self._ctl_connected()  # reads the monitor's events as they come, so they never pile up
+            if self.slot.failed() and not self.fatal.is_set():
+                # Registered and heartbeating, it would refuse its whole share of the fleet: leave for a restart.
+                log.critical("the engine's loop ended on a fault; leaving routing and exiting for a restart")
+                self.fatal_reason = "the engine's loop ended on a fault"
+                self.fatal.set()
             depths = self.slot.depths()
             self._ctl_send("heartbeat", executor=self.name, depths=depths)
             self._update_gauges(depths)

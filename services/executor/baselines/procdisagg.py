@@ -376,11 +376,15 @@ def _action_loop(shared: _Shared, inbox, free_groups, results) -> None:
         if idle:  # nothing to step: wait for the channel (not counted as inspection)
             poll(block=True)
             continue
-        t_inspect = time.perf_counter()
+        t_poll = time.perf_counter()
         poll(block=False)
+        poll_s = time.perf_counter() - t_poll  # the channel's poll is shared by the models of this round
         for mi, run in enumerate(runs):
             if not run.seqs and not run.pending:
                 continue
+            # Each model's inspection from here, not from the round's start: a later model's would include the
+            # earlier models' denoising steps (and, on a GPU, their synchronisation).
+            t_inspect = time.perf_counter() - poll_s
             p, ad, S = shared.plans[mi], run.adapter, run.state
             ring = rings[mi]
             admitted = 0
@@ -472,6 +476,15 @@ def _receive_loop(ref, results, stop: threading.Event) -> None:
         try:
             msg = results.get(timeout=0.1)
         except std_queue.Empty:
+            engine = ref()
+            if engine is None:
+                return
+            # A stage killed from outside (the OOM killer, a signal) reports nothing: its requests would wait until
+            # shutdown, and a start-up would wait out its whole timeout. Its exit is the report.
+            dead = next((p for p in engine._procs if not p.is_alive()), None)  # noqa: SLF001
+            if dead is not None and engine._fatal is None and not stop.is_set():  # noqa: SLF001
+                engine._handle(("fatal", f"{dead.name} exited (code {getattr(dead, 'exitcode', None)})"))  # noqa: SLF001
+            del engine
             continue
         except (EOFError, OSError, ValueError):
             return
@@ -494,7 +507,8 @@ def _stop_workers(procs: list, inbox, results_thread_stop: threading.Event) -> N
     for p in procs:
         p.join(timeout=10)
         if p.is_alive() and hasattr(p, "terminate"):
-            p.terminate()
+            p.terminate()  # e.g. the VLM process blocked on a handoff group its dead action process never frees
+            p.join(timeout=5)
 
 
 class ProcDisaggEngine(Engine):
