@@ -105,6 +105,27 @@ class EngineSlot:
             self.engine = engine
         return time.monotonic() - t0
 
+    def start_while(self, hosted: Hosted, meanwhile: Callable[[threading.Event], None]) -> float:
+        """``start`` on a thread of its own while ``meanwhile(started)`` runs on this one (it returns once
+        ``started`` is set, or earlier); returns the seconds ``start`` took, or raises what it raised."""
+        started = threading.Event()
+        outcome: dict = {}
+
+        def start() -> None:
+            try:
+                outcome["took"] = self.start(hosted)
+            except BaseException as exc:  # raised again on the caller's thread
+                outcome["error"] = exc
+            finally:
+                started.set()
+
+        threading.Thread(target=start, name="engine-start", daemon=True).start()
+        meanwhile(started)
+        started.wait()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["took"]
+
     def stop(self, timeout_s: float = 30.0) -> None:
         """Stop the engine; whatever it still holds is answered by its ``finish``."""
         with self._lock:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import os
-import threading
 
 import torch
 
@@ -122,24 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), 0)
     serve(metrics.registry, args.metrics_port if args.metrics_port is not None else ex_cfg.metrics_port_or_default(index))
     transport = ExecutorIO(args.name, cfg, ex_cfg.device, store, slot, hosted, metrics, limits=limits)
-    started = threading.Event()
-    start: dict = {}
-
-    def start_engine() -> None:
-        try:
-            start["took"] = slot.start(hosted)
-        except BaseException as exc:  # re-raised below, on this thread
-            start["error"] = exc
-        finally:
-            started.set()
-
     # The engine starts on its own thread while this one answers what the router sends meanwhile.
-    threading.Thread(target=start_engine, name="engine-start", daemon=True).start()
-    transport.answer_while_starting(started, stop)
-    started.wait()
-    if "error" in start:
-        raise start["error"]
-    took = start["took"]
+    took = slot.start_while(hosted, lambda started: transport.answer_while_starting(started, stop))
     try:
         if stop.is_set():
             # Stopped while the engine started: it never registered, so the control plane never routed
