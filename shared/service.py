@@ -111,25 +111,26 @@ def watch_parent(parent_pid: int, on_gone: Callable[[], None], stop: threading.E
     threading.Thread(target=watch, daemon=True, name="parent-watch").start()
 
 
+def monitor_events(events: zmq.Socket) -> list[int]:
+    """Read every event a socket monitor (``sock.get_monitor_socket(...)``) holds, oldest first."""
+    out = []
+    while True:
+        try:
+            out.append(recv_monitor_message(events, zmq.NOBLOCK)["event"])
+        except zmq.Again:
+            return out
+
+
 def connected_again(events: zmq.Socket) -> bool:
     """Read every event a socket monitor (``sock.get_monitor_socket(zmq.EVENT_CONNECTED)``) holds; True when
     one was a (re)connect: the peer may be a restarted process that knows nothing of this one yet."""
-    connected = False
-    while True:
-        try:
-            event = recv_monitor_message(events, zmq.NOBLOCK)
-        except zmq.Again:
-            return connected
-        connected |= event["event"] == zmq.EVENT_CONNECTED
+    return zmq.EVENT_CONNECTED in monitor_events(events)
 
 
 def connection_up(events: zmq.Socket, up: bool) -> bool:
     """Read every event a socket monitor (``sock.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)``)
     holds; whether the connection is up after them (``up``: as it was before them)."""
-    while True:
-        try:
-            event = recv_monitor_message(events, zmq.NOBLOCK)["event"]
-        except zmq.Again:
-            return up
+    for event in monitor_events(events):
         if event in (zmq.EVENT_CONNECTED, zmq.EVENT_DISCONNECTED):
             up = event == zmq.EVENT_CONNECTED
+    return up

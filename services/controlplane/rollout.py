@@ -119,11 +119,10 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
     # A step drains its executor for the whole reload. Each next step is the first (gainers first) whose
     # executor's models all have another serving host at that point; only where none has (a swap of two
     # single-hosted models) does a model go without a host, and the step names it.
-    serving = {name: set(ex.models) for name, ex in state.executors.items() if not state.routed_nothing_new(name)}
+    serving = _serving(state)
 
     def unhosted(step: Step) -> list[str]:
-        others = set().union(*(ms for n, ms in serving.items() if n != step.executor))
-        return sorted(serving.get(step.executor, set()) - others)
+        return sorted(_only_host(serving, step.executor, serving.get(step.executor, set())))
 
     ordered: list[Step] = []
     while pending:
@@ -136,14 +135,15 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
     return ordered
 
 
-def _sole_host_of(state: ClusterState, executor: str) -> set[str]:
-    """The models ``executor`` serves that no other executor routed now serves."""
-    ex = state.executors.get(executor)
-    if ex is None:
-        return set()
-    others = set().union(*(set(e.models) for n, e in state.executors.items()
-                           if n != executor and not state.routed_nothing_new(n)))
-    return set(ex.models) - others
+def _serving(state: ClusterState) -> dict[str, set[str]]:
+    """The models each executor routed now serves."""
+    return {name: set(ex.models) for name, ex in state.executors.items() if not state.routed_nothing_new(name)}
+
+
+def _only_host(serving: dict[str, set[str]], executor: str, models: Iterable[str]) -> set[str]:
+    """Those of ``models`` that no executor of ``serving`` but ``executor`` serves."""
+    others = set().union(*(ms for n, ms in serving.items() if n != executor))
+    return set(models) - others
 
 
 def _drain(state: ClusterState, step: Step) -> None:
@@ -187,7 +187,8 @@ class Rollout:
                     self._skip(step)
                 return
             self._gone_since = None
-            lost = sorted(_sole_host_of(state, step.executor) - {m.name for m in step.models} - set(step.unhosted))
+            only = _only_host(_serving(state), step.executor, state.executors[step.executor].models)
+            lost = sorted(only - {m.name for m in step.models} - set(step.unhosted))
             if lost:
                 # The plan counted on another executor serving these by now; its step failed (or it left). Dropping
                 # them here would leave them with no host at all, not just for this reload.
