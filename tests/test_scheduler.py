@@ -222,6 +222,10 @@ def test_a_queue_full_of_late_requests_takes_a_fresh_one_and_answers_the_late_at
     assert q.depths() == {"a": 1} and q.wait(0.0)
     model, batch, expired = q.take(2)
     assert [r.id for r in batch] == ["fresh"] and sorted(r.id for r in expired) == ["old1", "old2"]
+    # The shed ones left the pending count once: an empty queue takes nothing and waits for nothing.
+    assert q.take(2) == ("", [], []) and not q.wait(0.0)
+    q.put(req("a", "next", now, now + 60.0))
+    assert [r.id for r in q.take(2)[1]] == ["next"]
     without = ModelQueues(["a"], max_queue=1, shed_expired=False)  # nothing is shed: full is full
     without.put(req("a", "old", now - 1.0, now - 0.5))
     with pytest.raises(ProtocolError) as exc:

@@ -207,8 +207,8 @@ class ModelQueues:
         separately, so they cost no GPU time.
         """
         now = time.monotonic() if now is None else now
+        expired: list[Request] = []
         with self._cond:
-            expired, self._shed = self._shed, []
             if self._shed_expired:
                 for model, q in self._queues.items():
                     times = self._service.get(model)
@@ -216,6 +216,8 @@ class ModelQueues:
                     while q and (q[0].deadline <= now or _cannot_make_it(q[0], now, est)):
                         expired.append(q.popleft())
                 self._pending -= len(expired)
+            # Those a full queue shed at put left the pending count then.
+            expired, self._shed = self._shed + expired, []
             if self._pending == 0:
                 return "", [], expired
             model = self._policy.pick(self._queues)
