@@ -40,6 +40,9 @@ MAX_IDENTITY_BYTES = 255  # ZeroMQ's limit on a socket identity
 # request_timeout_s, so the set stays small unless the router restarts with answers owed.
 MAX_ABANDONED_IDS = 65536
 MAX_WHY_CHARS = 1024  # a decoder message can quote a peer's string (a dtype, a kind): keep the error readable
+# Requests waiting to be written to the router's connection. A robot has a few in flight; more than this queued
+# means the connection is not draining, and a request that old is better refused now than sent late.
+SEND_QUEUE = 64
 
 # The answer each request expects, besides an error reply; its wire kind names it in a MalformedReply.
 ANSWER_KINDS: dict[type, str] = {InferReply: "reply", Metadata: "metadata", Pong: "pong"}
@@ -101,11 +104,24 @@ class Completion:
         return self.error is None
 
 
+def _check_timeout(name: str, value: float) -> float:
+    """A timeout in seconds: a number, not NaN (which no clock comparison ever ends), not negative."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value) or value < 0:
+        raise RobionError(ErrorCode.BAD_REQUEST, f"{name}: expected seconds >= 0 (math.inf: no limit), got {value!r}")
+    return float(value)
+
+
 class RobotClient:
-    """One robot's connection. Not thread-safe (one ZeroMQ socket); use one client per thread."""
+    """One robot's connection. Not thread-safe (one ZeroMQ socket); use one client per thread.
+
+    Requests go out only over a live connection to the router: while there is none (the router not started
+    yet, restarting, unreachable), ``submit`` and the blocking calls fail at once with ``UNAVAILABLE``
+    instead of queueing requests that would reach the router late, after their caller gave up on them. A
+    new client gives its first connection up to ``connect_timeout_s`` to come up.
+    """
 
     def __init__(self, address: str, robot_id: str | None = None, timeout_s: float = 10.0,
-                 context: zmq.Context | None = None):
+                 context: zmq.Context | None = None, connect_timeout_s: float = 1.0):
         self.robot_id = robot_id or f"robot-{uuid.uuid4().hex[:8]}"
         # The router tells requests apart by (identity, id) and gives a reconnecting identity's replies to the new
         # connection, and its request_timeout_s outlasts ours: a client replacing another under the same robot_id
@@ -121,12 +137,21 @@ class RobotClient:
         if len(self.robot_id) > MAX_ROBOT_ID_CHARS or len(identity) > MAX_IDENTITY_BYTES:
             raise ValueError(f"robot_id: at most {MAX_ROBOT_ID_CHARS} characters and {MAX_IDENTITY_BYTES - 9} bytes "
                              f"in UTF-8, got {len(self.robot_id)} characters")
-        self.timeout_s = timeout_s
+        try:
+            self.timeout_s = _check_timeout("timeout_s", timeout_s)
+            connect_timeout_s = _check_timeout("connect_timeout_s", connect_timeout_s)
+        except RobionError as exc:
+            raise ValueError(exc.message) from None
         self._ctx = context or zmq.Context.instance()
         self.socket = self._ctx.socket(zmq.DEALER)
         try:
             self.socket.setsockopt(zmq.LINGER, 0)
             self.socket.setsockopt(zmq.IDENTITY, identity)
+            # IMMEDIATE: queue only to a connected router. Without it a request sent while the router is away
+            # waits in the socket and reaches the router when it is back, long after poll() reported it timed
+            # out, and costs GPU time then; tens of them held hundreds of MB of camera images meanwhile.
+            self.socket.setsockopt(zmq.IMMEDIATE, 1)
+            self.socket.setsockopt(zmq.SNDHWM, SEND_QUEUE)
             connect(self.socket, address)
         except zmq.ZMQError:
             self.socket.close(linger=0)
@@ -144,6 +169,8 @@ class RobotClient:
         # computed for another observation. So such an id is refused until that late answer has arrived.
         self._abandoned: OrderedDict[RequestId, None] = OrderedDict()
         self._metadata: dict[str, ModelInfo] | None = None
+        # Until then a send waits for the first connection, which comes up a moment after connect() returns.
+        self._connect_by = time.monotonic() + connect_timeout_s
 
     # -- non-blocking API
 
@@ -167,9 +194,10 @@ class RobotClient:
         try:
             frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
                                          state=np.asarray(state, dtype=np.float32), instruction=instruction))
-        except (TypeError, ValueError) as exc:  # a dtype that cannot travel, text that is no UTF-8 (lone surrogates)
+        except (TypeError, ValueError, OverflowError) as exc:
+            # A dtype that cannot travel, text that is no UTF-8 (lone surrogates), an int id past 64 bits.
             raise RobionError(ErrorCode.BAD_REQUEST, str(exc), str(rid)) from None
-        self._send(rid, model, frames, InferReply)
+        self._send(rid, model, frames, InferReply, timeout_s)
         return rid
 
     def poll(self, timeout_s: float = 0.0) -> list[Completion]:
@@ -182,8 +210,10 @@ class RobotClient:
         # A blocking call (infer, ping, metadata) reads every reply off the shared socket while it waits
         # for its own and keeps the others in _done; they are this poll's results, returned first. With
         # any in hand, poll only gathers what else is already here and does not wait.
+        deadline = time.monotonic() + _check_timeout("timeout_s", timeout_s)
         out, self._done = self._done, []
-        deadline = time.monotonic() + timeout_s
+        if self.socket.closed:  # close() ended every request in flight; their outcomes are in out
+            return out
         while True:
             # Replies already here first: a request whose reply has come is not one to give up on.
             while self.socket.poll(0):
@@ -216,7 +246,7 @@ class RobotClient:
               instruction: str = "", timeout_s: float | None = None) -> Completion:
         """Send one request and wait for its action chunk; raises RobionError / RequestTimeout. ``timeout_s``
         (default: the client's) bounds the whole call, a first fetch of the camera names included."""
-        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        timeout_s = self.timeout_s if timeout_s is None else _check_timeout("timeout_s", timeout_s)
         deadline = time.monotonic() + timeout_s
         rid = self._submit(model, images, state, instruction, None, timeout_s)
         done = self._wait_for(rid, deadline - time.monotonic(), reported_s=timeout_s)
@@ -237,14 +267,22 @@ class RobotClient:
 
     def _round_trip(self, message: type, answer: type, tag: str, timeout_s: float | None) -> Completion:
         """Send a message that carries only an id and wait for its answer; its error is raised."""
+        timeout_s = self.timeout_s if timeout_s is None else _check_timeout("timeout_s", timeout_s)
+        deadline = time.monotonic() + timeout_s
         rid = f"{self.robot_id}-{self._session}-{tag}-{next(self._ids)}"
-        self._send(rid, "", encode(message(id=rid)), answer)
-        done = self._wait_for(rid, timeout_s)
+        self._send(rid, "", encode(message(id=rid)), answer, timeout_s)
+        done = self._wait_for(rid, max(0.0, deadline - time.monotonic()), reported_s=timeout_s)
         if done.error is not None:
             raise done.error
         return done
 
     def close(self) -> None:
+        """Close the connection. Requests still in flight end with ``UNAVAILABLE`` ("client closed"); ``poll``
+        returns them (and any other outcome not yet returned), so ``pending()`` reaches 0."""
+        now = time.monotonic()
+        for rid in list(self._pending):
+            self._done.append(self._complete(rid, now, 0, error=RobionError(
+                ErrorCode.UNAVAILABLE, "client closed before the answer came", rid)))
         self.socket.close(linger=0)
 
     def __enter__(self) -> "RobotClient":
@@ -255,8 +293,9 @@ class RobotClient:
 
     # -- internals
 
-    def _send(self, rid: RequestId, model: str, frames: list, answer: type) -> None:
-        """Send a request and track it; raise RobionError, with nothing left pending, when it cannot go out."""
+    def _send(self, rid: RequestId, model: str, frames: list, answer: type, wait_s: float) -> None:
+        """Send a request and track it; raise RobionError, with nothing left pending, when it cannot go out.
+        A new client's first connection is waited for, up to ``wait_s`` (the call's timeout)."""
         # The router answers a request whose id or header it cannot read with id "" (docs/protocol.md): such
         # an answer matches nothing here, so the request would only ever time out. Refuse it before sending.
         # "" included: it is the id of the router's answers to requests it could not read, so a request under
@@ -272,17 +311,23 @@ class RobotClient:
         if rid in self._abandoned:
             raise RobionError(ErrorCode.BAD_REQUEST, f"id: request {rid!r} timed out and its answer may still "
                                                      f"come; give a retry a fresh id", str(rid))
+        if self.socket.closed:
+            raise RobionError(ErrorCode.BAD_REQUEST, "the client is closed", str(rid))
+        # NOBLOCK: a blocking send would wait until the router is back, past any timeout the caller gave. Only a
+        # new client's first connection is waited for, and only up to connect_timeout_s after the client was made.
+        wait = min(self._connect_by - time.monotonic(), wait_s)
+        if wait > 0:
+            self.socket.poll(math.ceil(wait * 1000), zmq.POLLOUT)
         sent_at = time.monotonic()
         try:
-            # NOBLOCK: while the router is unreachable the socket queues up to its high-water mark; a blocking
-            # send would then wait until the router is back, past any timeout the caller gave. copy=True: the
-            # frames are views of the caller's arrays, and a zero-copy send reads them only when the message
-            # leaves, maybe after a camera loop has written its next image into the same buffer. A copy of a
-            # few camera images costs tens of microseconds.
+            # copy=True: the frames are views of the caller's arrays, and a zero-copy send reads them only when
+            # the message leaves, maybe after a camera loop has written its next image into the same buffer. A
+            # copy of a few camera images costs tens of microseconds.
             self.socket.send_multipart(frames, flags=zmq.NOBLOCK, copy=True)
         except zmq.Again:
-            raise RobionError(ErrorCode.UNAVAILABLE, "the router is not taking requests (send queue full: "
-                                                     "unreachable or not reading)", str(rid)) from None
+            raise RobionError(ErrorCode.UNAVAILABLE, "the router is not reachable (no connection, or its send "
+                                                     f"queue of {SEND_QUEUE} is full); retry", str(rid)) from None
+        self._connect_by = 0.0  # connected once: from now on a send without a connection fails at once
         self._pending[rid] = (model, sent_at, message_bytes(frames), answer)
 
     def _next_expiry(self) -> float | None:
@@ -309,8 +354,19 @@ class RobotClient:
             self._abandoned.popitem(last=False)
 
     def _camera_names(self, model: str, n: int, timeout_s: float) -> list[str]:
-        info = self.metadata(timeout_s=timeout_s).get(model)
+        """The model's camera names, from the cached model list; asked for again once when the cache does not
+        fit the call (a model added since, a camera count changed, or a list fetched before the router had
+        its routing table), so that an old list never fails a request for good."""
+        deadline = time.monotonic() + timeout_s
+        cached = self._metadata is not None
+        models = self.metadata(timeout_s=timeout_s)
+        info = models.get(model)
+        if cached and (info is None or len(info.cameras) != n):
+            models = self.metadata(refresh=True, timeout_s=max(0.0, deadline - time.monotonic()))
+            info = models.get(model)
         if info is None:
+            if not models:  # the router has no routing table yet (docs/protocol.md): retryable, as its own answer
+                raise RobionError(ErrorCode.UNAVAILABLE, "the router serves no models yet (starting); retry")
             raise RobionError(ErrorCode.UNKNOWN_MODEL, f"model {model!r} is not served")
         if len(info.cameras) != n:
             raise RobionError(ErrorCode.SHAPE_MISMATCH, f"{model} takes {len(info.cameras)} cameras, got {n}")
@@ -397,13 +453,14 @@ def wait_any(clients: Iterable[RobotClient], timeout_s: float) -> list[tuple[Rob
     the wait ends when the first request in flight on any client expires.
     """
     clients = list(clients)
+    end = time.monotonic() + _check_timeout("timeout_s", timeout_s)
     poller = zmq.Poller()
     by_socket = {}
     for c in clients:
-        poller.register(c.socket, zmq.POLLIN)
-        by_socket[c.socket] = c
+        if not c.socket.closed:  # a closed client's outcomes (close() ended its requests) are in its _done
+            poller.register(c.socket, zmq.POLLIN)
+            by_socket[c.socket] = c
 
-    end = time.monotonic() + timeout_s
     while True:
         # Nothing is sent or read until the poll below, so each client's next expiry holds until then.
         expiry = {c: c._next_expiry() for c in clients}
