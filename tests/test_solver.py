@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import logging
 import random
+import time
 from fractions import Fraction
 
 import pytest
@@ -322,6 +323,36 @@ def test_the_lower_bound_is_a_non_negative_integer() -> None:
     res = solve(p, "ip", time_limit_s=0.5)
     assert isinstance(res.best_bound, int) and 0 <= res.best_bound <= res.objective, res.best_bound
     assert res.optimal == (res.best_bound == res.objective)
+
+
+def test_the_bound_is_never_above_an_optimal_plans_objective() -> None:
+    """CP-SAT's bound is a double: 20.000000000000004 for 20 was rounded up to 21, and an optimal plan of
+    objective 4 was reported with a lower bound of 5."""
+    res = solve(make_problem(1, [("M0", 3, 2, None), ("M1", 6, 2, None)]), "ip", time_limit_s=5)
+    assert res.optimal and res.objective == 4 and res.best_bound == 4, (res.objective, res.best_bound)
+
+
+def test_the_work_limit_does_not_depend_on_how_long_the_greedy_pass_took(monkeypatch: pytest.MonkeyPatch) -> None:
+    """CP-SAT's deterministic limit was a share of the wall-clock time left after the greedy pass, so a busy
+    host (here: a greedy pass 0.3 s slower) changed where a time-out ended, and with it the plan (objective 64
+    against 79 on this instance at a 2 s limit): a re-solve of an unchanged cluster moved robots."""
+    from services.controlplane import solver
+
+    limits: list[float] = []
+    set_params = solver._cp_sat_parameters
+
+    def recording(cp, seconds, work, num_workers, random_seed):
+        limits.append(work)
+        set_params(cp, seconds, work, num_workers, random_seed)
+
+    monkeypatch.setattr(solver, "_cp_sat_parameters", recording)
+    greedy = solver._greedy
+    p = bench_instance(32, 16, "partial", 0)
+    for delay in (0.0, 0.3):
+        monkeypatch.setattr(solver, "_greedy", lambda prob, d=delay: (time.sleep(d), greedy(prob))[1])
+        assert solve(p, "ip", time_limit_s=2.0).feasible
+    # Each solve's first-plan search and main search, the same in both.
+    assert len(limits) == 4 and limits[:2] == limits[2:] and limits[1] == 2.0 * solver._DETERMINISTIC_SHARE, limits
 
 
 def test_identical_solves_give_identical_plans(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -47,13 +47,13 @@ DEFAULT_TIME_LIMIT_S = 8.0
 # one control plane drives, and its model still builds in seconds.
 MAX_GPUS = 4096
 
-# Share of the seconds left that CP-SAT gets as deterministic time. Measured on the bench's 2-core
+# Share of the time limit that CP-SAT gets as deterministic time. Measured on the bench's 2-core
 # machine a deterministic second takes 2-2.5 wall seconds; a quarter keeps the deterministic limit the
 # one that ends a time-out there (so it ends the same way every run), and the 32 x 16 bench instances
 # reach the same objectives as with the whole limit.
 _DETERMINISTIC_SHARE = 0.25
 
-# CP-SAT is not started when the integer program has more (model, GPU) pairs than this per second left
+# CP-SAT is not started when the integer program has more (model, GPU) pairs than this per second
 # of the time limit: on the bench's 2-core machine its presolve took 6 s for 16k pairs and 11 s for 32k
 # with 5 s left, most of it in steps that do not check the limit. The greedy plan is returned instead.
 _MAX_IP_VARS_PER_S = 2000
@@ -782,12 +782,16 @@ def _bound_on_objective(ip: _IpModel, bound: float) -> int:
     if not math.isfinite(bound):
         return 0
     # weighted = weight * twice + pairs with 0 <= pairs <= num_pairs, so twice >= (bound - num_pairs) / weight.
-    b = math.ceil(bound)
+    # The weighted objective is an integer and CP-SAT's bound a double a rounding off it (20.000000000000004
+    # for 20): ceil of that, one too high, had called a plan better than the true optimum's bound.
+    b = math.ceil(bound - max(1e-6, 1e-12 * abs(bound)))
     twice = -((ip.num_pairs - b) // ip.weight) if ip.with_pairs else b  # ceil((b - num_pairs) / weight)
     return max(0, -(-twice // 2))
 
 
-def _cp_sat_parameters(solver: cp_model.CpSolver, seconds: float, num_workers: int | None, random_seed: int) -> None:
+def _cp_sat_parameters(solver: cp_model.CpSolver, seconds: float, work: float, num_workers: int | None,
+                       random_seed: int) -> None:
+    """At most ``seconds`` of wall clock and ``work`` of CP-SAT's deterministic time."""
     p = solver.parameters
     # One worker follows one search path for a given model and seed; several race (CP-SAT's portfolio)
     # and returned a different optimal plan from run to run, so the control plane re-pinned about half
@@ -796,9 +800,9 @@ def _cp_sat_parameters(solver: cp_model.CpSolver, seconds: float, num_workers: i
     p.num_workers = num_workers or 1
     p.random_seed = random_seed
     # The deterministic limit (CP-SAT's work count, about seconds on its reference machine) ends a
-    # time-out at the same point on every run; the wall-clock limit stays the hard cap and only comes
-    # first on a machine more than 1 / _DETERMINISTIC_SHARE times slower than that reference.
-    p.max_deterministic_time = seconds * _DETERMINISTIC_SHARE
+    # time-out at the same point on every run, so the caller derives it from its inputs alone, never from
+    # the wall clock left; the wall-clock limit stays the hard cap.
+    p.max_deterministic_time = work
     p.max_time_in_seconds = seconds
 
 
@@ -863,10 +867,11 @@ def solve_ip(
     if greedy is not None and plan_key(problem, greedy) == (0, _min_pairs(problem)):
         # Nothing can beat it on either term: every GPU serves one model, each model on as few GPUs as it can.
         return fallback("optimal by construction")
-    # Past this size CP-SAT's presolve alone outlasts the time left (32k variables: 11 s with 5 s left,
-    # most of it in steps that do not check the limit), so it is not started at all.
+    # Past this size CP-SAT's presolve alone outlasts the time limit (32k variables: 11 s with 5 s left,
+    # most of it in steps that do not check the limit), so it is not started at all. Judged on the limit
+    # given, not the time left: the same problem and limit must take the same path on every run.
     num_vars = sum(len(m.gpus) for m in problem.models if m.robots)
-    if num_vars > _MAX_IP_VARS_PER_S * (deadline - time.perf_counter()):
+    if num_vars > _MAX_IP_VARS_PER_S * time_limit_s:
         return fallback(f"an integer program of {num_vars} (model, GPU) pairs is too large for the time left")
     try:
         ip = _build_ip(problem, hosted, obj_bound, deadline)
@@ -876,7 +881,7 @@ def solve_ip(
         # The greedy plan gets stuck on tight partial placements. A search for any plan (the constraints
         # without the objective) finds one there in milliseconds, where the full model's search can end
         # the time limit with none, and the control plane then split robots evenly, over the GPUs' limits.
-        greedy = _first_plan(problem, ip, deadline, random_seed)
+        greedy = _first_plan(problem, ip, deadline, time_limit_s, random_seed)
         start_source = "cp-sat"
     if greedy is not None:
         _add_hint(problem, ip, greedy)
@@ -885,7 +890,7 @@ def solve_ip(
         return fallback("the time limit passed while building the integer program")
 
     solver = cp_model.CpSolver()
-    _cp_sat_parameters(solver, remaining, num_workers, random_seed)
+    _cp_sat_parameters(solver, remaining, time_limit_s * _DETERMINISTIC_SHARE, num_workers, random_seed)
     if num_vars > _SYMMETRY_MAX_VARS:
         # CP-SAT's symmetry detection ignored the time limit on large models (31 s over an 8 s limit at
         # 8192 pairs); the ordering constraints in _build_ip already break the symmetry between GPUs.
@@ -915,17 +920,19 @@ def solve_ip(
                    best_bound=bound, source="cp-sat")
 
 
-def _first_plan(problem: PlanProblem, ip: _IpModel, deadline: float,
+def _first_plan(problem: PlanProblem, ip: _IpModel, deadline: float, time_limit_s: float,
                 random_seed: int) -> dict[str, dict[int, int]] | None:
     """Any plan within the limits: CP-SAT on the constraints of ``ip`` without its objective, stopped at the
-    first solution, for at most _FIRST_PLAN_SHARE of the time left. None when it finds none in that time."""
+    first solution, for at most _FIRST_PLAN_SHARE of the time left (and of the solve's deterministic
+    budget). None when it finds none in that time."""
     remaining = deadline - time.perf_counter()
     if remaining < 2 * _MIN_SOLVE_S:
         return None
     mdl = ip.mdl.clone()  # the same variables, by index, so ip.r reads the solution
     mdl.clear_objective()
     solver = cp_model.CpSolver()
-    _cp_sat_parameters(solver, remaining * _FIRST_PLAN_SHARE, 1, random_seed)
+    _cp_sat_parameters(solver, remaining * _FIRST_PLAN_SHARE, time_limit_s * _DETERMINISTIC_SHARE * _FIRST_PLAN_SHARE,
+                       1, random_seed)
     solver.parameters.stop_after_first_solution = True
     status = solver.solve(mdl)
     log.debug("CP-SAT first plan: %s in %.3fs", solver.status_name(status), solver.wall_time)
