@@ -123,11 +123,27 @@ def valid_address(v: Any) -> bool:
     return bool(m) and (m.group(3) is None or 1 <= int(m.group(3)) <= 65535)
 
 
+def valid_dial_address(v: Any) -> bool:
+    """An address to dial: as valid_address, but no * host, which only a bind takes (zmq refuses to dial it)."""
+    return valid_address(v) and not v.startswith("tcp://*:")
+
+
+_DEVICE_RE = re.compile(r"cpu|cuda:(0|[1-9][0-9]*)")
+
+
+def valid_device(v: str) -> bool:
+    """'cpu' or 'cuda:N' in ASCII digits without a leading zero, as torch.device takes it (str.isdigit also
+    passed 'cuda:01' and 'cuda:²', which torch refuses with a traceback)."""
+    return bool(_DEVICE_RE.fullmatch(v))
+
+
 def _check(pred, text: str) -> dict[str, Any]:
     return {"check": (pred, text)}
 
 
 _ADDRESS = _check(valid_address, "expected an address like tcp://HOST:PORT, ipc://PATH or inproc://NAME")
+_DIAL = _check(valid_dial_address, "expected an address to dial like tcp://HOST:PORT (no * host), ipc://PATH or "
+                                   "inproc://NAME")
 _SEED = _check(_seed, "expected a non-negative integer below 2**63")
 # Most executors one cluster config describes: the traffic controller plans at most that many GPUs
 # (services/controlplane/solver.py, MAX_GPUS), and `gpus: N` must not build a list of any size first.
@@ -227,7 +243,7 @@ class EngineConfig:
 class RouterConfig:
     bind: str = field(default="tcp://127.0.0.1:5555", metadata=_ADDRESS)  # robots connect here (DEALER)
     backend: str = field(default="tcp://127.0.0.1:5556", metadata=_ADDRESS)  # executors connect here (DEALER)
-    backend_connect: str | None = field(default=None, metadata=_ADDRESS)
+    backend_connect: str | None = field(default=None, metadata=_DIAL)
     # address executors dial when it differs from the bind (containers)
     # Capped: the sockets' frame limit is twice this (plus headers) in a C long.
     max_message_bytes: int = field(default=16 * 1024 * 1024, metadata=_check(
@@ -253,7 +269,7 @@ class LimitsConfig:
 @dataclass
 class ControlConfig:
     bind: str = field(default="tcp://127.0.0.1:5557", metadata=_ADDRESS)
-    connect: str | None = field(default=None, metadata=_ADDRESS)
+    connect: str | None = field(default=None, metadata=_DIAL)
     # address other services dial when it differs from the bind (containers)
     heartbeat_s: float = field(default=0.5, metadata=_check(positive_number, "expected a positive number"))
     missed_heartbeats: int = field(default=6, metadata=_check(positive_number, "expected a positive integer"))
@@ -437,6 +453,8 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
             raise ConfigError(f"models[{i}].size: {m.arch} has no size {m.size!r} (sizes: {', '.join(sorted(sizes))})")
     if not cfg.executors:
         raise ConfigError("executors: at least one executor is needed")
+    if len(cfg.executors) > MAX_EXECUTORS:  # the planner refuses more; say so at load, not at every solve
+        raise ConfigError(f"executors: at most {MAX_EXECUTORS} executors in one cluster, got {len(cfg.executors)}")
     _unique_names([e.name for e in cfg.executors], "executors")
     for j, e in enumerate(cfg.executors):
         # The name is the executor's ZeroMQ socket identity: at most 255 bytes, and one starting with a zero byte
@@ -451,7 +469,7 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
                 raise ConfigError(f"executors[{j}].models[{k}]: no model named {name!r}")
             if name in e.models[:k]:  # the planner would report it under a path this file does not have
                 raise ConfigError(f"executors[{j}].models[{k}]: {name!r} is listed twice")
-        if e.device != "cpu" and not (e.device.startswith("cuda:") and e.device[5:].isdigit()):
+        if not valid_device(e.device):
             raise ConfigError(f"executors[{j}].device: expected 'cpu' or 'cuda:N', got {e.device!r}")
     hosted = {name for e in cfg.executors for name in e.models}
     for i, m in enumerate(cfg.models):
@@ -496,9 +514,9 @@ def parse_devices(text: str, required: bool = False) -> list[str]:
     """
     out = []
     for item in filter(None, (s.strip() for s in text.replace("+", ",").replace(" ", ",").split(","))):
-        if item.isdigit():
-            out.append(f"cuda:{int(item)}")
-        elif item == "cpu" or (item.startswith("cuda:") and item[5:].isdigit()):
+        if valid_device(f"cuda:{item}"):
+            out.append(f"cuda:{item}")
+        elif valid_device(item):
             out.append(item)
         else:
             raise ValueError(f"{item!r} is not a device (expected 'cpu', 'cuda:N' or an index N)")
@@ -530,6 +548,9 @@ def _expand_placement(data: Any) -> Any:
             raise ConfigError("gpus: expected a positive integer")
         if gpus > MAX_EXECUTORS:  # before a list of that many executors is built
             raise ConfigError(f"gpus: at most {MAX_EXECUTORS} executors in one cluster, got {gpus}")
+        if placement is None:  # the GPUs it makes list no models: say so here, not at executors[0].models
+            raise ConfigError("placement: gpus: N needs placement: mix or placement: {groups: ...} to say which "
+                              "models each GPU serves")
         data["executors"] = [{"name": f"gpu{j}", "device": f"cuda:{j}", "models": []} for j in range(gpus)]
     executors = data.get("executors")
     if not isinstance(executors, list) or not all(isinstance(e, dict) for e in executors):

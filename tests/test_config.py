@@ -70,7 +70,13 @@ def test_defaults():
     (lambda d: d.update(router={"backend": "tcp://127.0.0.1"}), "router.backend: expected an address like"),
     (lambda d: d.update(router={"backend_connect": "tcp://router:70000"}), "router.backend_connect: expected"),
     (lambda d: d.update(control={"bind": "http://127.0.0.1:5557"}), "control.bind: expected an address like"),
-    (lambda d: d.update(control={"connect": "tcp://control:port"}), "control.connect: expected an address like"),
+    (lambda d: d.update(control={"connect": "tcp://control:port"}), "control.connect: expected an address"),
+    # a bind's * host is no address to dial: `robion ctl` and every service ended in a ZMQError traceback
+    (lambda d: d.update(control={"connect": "tcp://*:15557"}), "control.connect: expected an address to dial"),
+    (lambda d: d.update(router={"backend_connect": "tcp://*:5556"}), "router.backend_connect: expected an address"),
+    # str.isdigit passed these, and torch.device refused them in the executor (a traceback)
+    (lambda d: d["executors"][0].update(device="cuda:01"), "executors[0].device: expected 'cpu' or 'cuda:N'"),
+    (lambda d: d["executors"][0].update(device="cuda:\u00b2"), "executors[0].device: expected 'cpu' or 'cuda:N'"),
     # msgpack packs no integer from 2**64 on: every table_get and status of the control plane failed
     # without a reply (the routing table holds limits and quotas).
     (lambda d: d["models"][0].update(limit=2 ** 64), "models[0].limit: expected a positive integer below 2**63"),
@@ -240,6 +246,23 @@ def test_the_gpus_shorthand_is_capped_before_it_builds_executors():
     with pytest.raises(ConfigError, match=f"gpus: at most {MAX_EXECUTORS} executors in one cluster, got 100000000"):
         _expand_placement(placed("mix", gpus=100_000_000))
     assert len(_expand_placement(placed("mix", gpus=MAX_EXECUTORS))["executors"]) == MAX_EXECUTORS
+    # A list of executors is capped too: the planner refused it at every solve, naming `gpus`, a key not in the file.
+    data = base()
+    data["executors"] = [{"name": f"e{j}", "models": ["a", "b"]} for j in range(MAX_EXECUTORS + 1)]
+    with pytest.raises(ConfigError, match=f"executors: at most {MAX_EXECUTORS} executors in one cluster, got 4097"):
+        config_from_dict(data)
+    # gpus: N alone lists no models on its GPUs; the error named executors[0].models, a path not in the file.
+    with pytest.raises(ConfigError, match="placement: gpus: N needs placement: mix"):
+        config_from_dict({"models": base()["models"], "gpus": 2})
+
+
+def test_device_lists_take_ascii_indices_only():
+    from shared.config import parse_devices
+
+    assert parse_devices("0+1") == ["cuda:0", "cuda:1"] and parse_devices("cuda:3, cpu") == ["cuda:3", "cpu"]
+    for bad in ("\u00b2", "cuda:01", "01"):
+        with pytest.raises(ValueError, match="is not a device"):
+            parse_devices(bad)
 
 
 def test_peers_dial_a_wildcard_bind_on_loopback():

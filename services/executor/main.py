@@ -11,7 +11,7 @@ from services.executor.engine import resolve_kind
 from services.executor.hosting import EngineSlot, ModelStore
 from services.executor.limits import measure_limits
 from services.executor.transport import ExecutorIO
-from shared.config import ClusterConfig, ConfigError, ExecutorConfig, parse_devices
+from shared.config import ClusterConfig, ConfigError, ExecutorConfig, parse_devices, valid_device
 from shared.metrics import ExecutorMetrics, serve
 from shared.placement import check_fit
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     if args.device:
         # The config's rule for `device`: torch.device would end the process with a traceback.
-        if args.device != "cpu" and not (args.device.startswith("cuda:") and args.device[5:].isdigit()):
+        if not valid_device(args.device):
             log.error("--device: expected 'cpu' or 'cuda:N', got %r", args.device)
             return 2
         ex_cfg.device = args.device
