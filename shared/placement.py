@@ -23,11 +23,23 @@ ACTIVATION_PER_BATCH = int(0.25 * GIB)  # per unit of max_batch
 
 @lru_cache(maxsize=64)
 def model_bytes(arch: str, size: str, max_batch: int, dtype_bytes: int = 2) -> int:
+    from shared.models.registry import build_meta, build_model
+
+    try:
+        return _estimate(build_meta(arch, size), max_batch, dtype_bytes)
+    except Exception:
+        # A user's class whose constructor (or handoff_spec) reads a tensor's value cannot run on the meta device
+        # (docs/models.md); its executor builds it for real, so the estimate does too, once, on the CPU.
+        pass
+    try:
+        return _estimate(build_model(arch, size, device="cpu"), max_batch, dtype_bytes)
+    except Exception as exc:
+        raise ConfigError(f"cannot estimate the memory of {arch} ({size}): {type(exc).__name__}: {exc}") from exc
+
+
+def _estimate(model, max_batch: int, dtype_bytes: int) -> int:
     import torch
 
-    from shared.models.registry import build_meta
-
-    model = build_meta(arch, size)
     weights = (sum(p.numel() for p in model.parameters()) + _folded_params(model)) * dtype_bytes
     buffers = 0
     b = 1

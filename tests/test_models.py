@@ -9,8 +9,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from shared.config import ConfigError
 from shared.models import ModelIO, VLAModel, build_model, get_architecture, register
 from shared.models.registry import _ARCHS, build_meta
+from shared.models.weights import load_weights, save_weights
+from shared.placement import model_bytes
 
 ARCHS = ["pi0", "smolvla", "groot_n15", "xr0"]
 
@@ -224,21 +227,32 @@ class _NeedsRealValues(VLAModel):
         self.rates = [x.item() for x in torch.linspace(0, 0.1, depth)]
         self.proj = torch.nn.Linear(4, 4)
 
+    def handoff_spec(self, batch: int) -> dict:
+        return {"h": ((batch, 4), torch.float32)}
+
     def init_weights(self, generator: torch.Generator) -> None:
         with torch.no_grad():
             self.proj.weight.normal_(generator=generator)
 
 
-def test_tied_weights_stay_tied_and_meta_hostile_constructors_still_build():
+def test_tied_weights_stay_tied_and_meta_hostile_constructors_still_build(tmp_path):
     """A model built on the meta device and materialised with to_empty lost its tied weights (two tensors,
-    initialised apart); a constructor that cannot run on the meta device failed inside build_model."""
+    initialised apart); a constructor that cannot run on the meta device failed inside build_model, and then
+    in the memory estimate of a config with memory_gb (a traceback); saving tied weights failed in safetensors
+    ("Some tensors share memory")."""
     register("test_tied")(_Tied)
     register("test_needs_real_values")(_NeedsRealValues)
     try:
         m = build_model("test_tied", "tiny", seed=1)
         assert m.head.weight is m.embed.weight and m.embed.weight.abs().max() > 0
+        save_weights(m, str(tmp_path / "tied.safetensors"))
+        other = load_weights(build_model("test_tied", "tiny", seed=2), str(tmp_path / "tied.safetensors"))
+        assert torch.equal(other.embed.weight, m.embed.weight) and other.head.weight is other.embed.weight
         a, b = (build_model("test_needs_real_values", "tiny", seed=2) for _ in range(2))
         assert len(a.rates) == 4 and torch.equal(a.proj.weight, b.proj.weight)  # same seed, same weights
+        assert model_bytes("test_needs_real_values", "tiny", 2) > model_bytes("test_needs_real_values", "tiny", 1) > 0
+        with pytest.raises(ConfigError, match="cannot estimate the memory of test_tied"):  # no handoff_spec
+            model_bytes("test_tied", "tiny", 1)
     finally:
         _ARCHS.pop("test_tied", None)
         _ARCHS.pop("test_needs_real_values", None)
@@ -252,3 +266,8 @@ def test_register_misuse_is_refused_where_it_happens():
     with pytest.raises(TypeError, match="needs a VLAModel subclass"):
         register("test_not_a_vla")(torch.nn.Linear)
     assert "test_not_a_vla" not in _ARCHS
+    # CONFIGS is read as a mapping by the config's checks and `robion models`: there it failed as a TypeError.
+    no_sizes = type("NoSizes", (_Tied,), {"CONFIGS": None})
+    with pytest.raises(TypeError, match=r"NoSizes.CONFIGS must be a dict of size name -> config, got NoneType"):
+        register("test_no_sizes")(no_sizes)
+    assert "test_no_sizes" not in _ARCHS

@@ -76,9 +76,11 @@ def test_a_bad_robion_imports_entry_is_a_config_error_for_a_service(tmp_path):
 
 
 def test_robion_models_lists_the_modules_named_in_robion_imports(tmp_path):
+    """As docs/models.md runs it: the `robion` script in the module's folder. The script, unlike `python -m`,
+    does not put the working directory on sys.path, and the module was not found."""
     (tmp_path / "my_vla_listed.py").write_text(docs_example())
-    env = {**os.environ, "ROBION_IMPORTS": "my_vla_listed", "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
-    res = subprocess.run([sys.executable, "-m", "shared.cli", "models", "--json"], capture_output=True, text=True,
-                         cwd=ROOT, env=env, timeout=120)
+    env = {**os.environ, "ROBION_IMPORTS": "my_vla_listed", "PYTHONPATH": str(ROOT)}
+    res = subprocess.run([str(Path(sys.executable).with_name("robion")), "models", "--json"], capture_output=True,
+                         text=True, cwd=tmp_path, env=env, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     assert '"my_vla"' in res.stdout and '"horizon": 16' in res.stdout, res.stdout

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import sys
 
 import torch
 
@@ -32,6 +33,11 @@ def register(name: str):
     def wrap(cls: type[VLAModel]) -> type[VLAModel]:
         if not (isinstance(cls, type) and issubclass(cls, VLAModel)):
             raise TypeError(f"@register({name!r}) needs a VLAModel subclass, got {cls!r}")
+        configs = getattr(cls, "CONFIGS", None)
+        if not isinstance(configs, dict) or not all(isinstance(k, str) for k in configs):
+            # Read as a mapping by the config's checks and `robion models`: anything else failed there as a TypeError.
+            raise TypeError(f"@register({name!r}): {cls.__name__}.CONFIGS must be a dict of size name -> config, "
+                            f"got {type(configs).__name__}")
         if cls.__module__ not in BUILTIN_MODULES:
             # The built-ins first: a user's module imported before them could otherwise take "pi0", and the
             # clash would surface later as an error inside shared/models/pi0.py, blaming the wrong module.
@@ -122,8 +128,12 @@ def _load_builtin_archs() -> None:
 def _load_builtin() -> None:
     _load_builtin_archs()
     # A user's own architectures, for tools run without a config (`robion models`): the modules named in
-    # ROBION_IMPORTS (comma-separated). A config lists them under `imports` (shared/config.py).
-    for name in filter(None, (n.strip() for n in os.environ.get("ROBION_IMPORTS", "").split(","))):
+    # ROBION_IMPORTS (comma-separated). A config lists them under `imports` (shared/config.py). The working
+    # directory is searched after sys.path: the `robion` script, unlike `python -m`, does not put it there.
+    names = [n for n in (n.strip() for n in os.environ.get("ROBION_IMPORTS", "").split(",")) if n]
+    if names and os.getcwd() not in sys.path and "" not in sys.path:
+        sys.path.append(os.getcwd())
+    for name in names:
         try:
             importlib.import_module(name)
         except Exception as exc:

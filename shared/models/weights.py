@@ -35,7 +35,16 @@ def save_weights(model: VLAModel, path: str) -> None:
     """Write the model's state dict (in its current dtype) to a safetensors file."""
     from safetensors.torch import save_file
 
-    tensors = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    # safetensors refuses tensors that share memory (tied parameters: one tensor under two keys). Each key gets
+    # its own copy of a shared one, so the file has every key load_weights expects; loading assigns the same
+    # values to both, which keeps them tied.
+    tensors, seen = {}, set()
+    for k, v in model.state_dict().items():
+        v = v.detach()
+        ptr = (v.untyped_storage().data_ptr(), v.device) if v.numel() else None
+        tensors[k] = v.clone() if ptr in seen else v.contiguous()
+        if ptr is not None:
+            seen.add(ptr)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     save_file(tensors, path, metadata={"arch": model.arch, "format": "robion-zoo-1"})
 
