@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from shared.config import ConfigError, dial_address, parse_yaml, positive_number, solve_time_limit
+from shared.files import unwritable
 from shared.service import load_or_exit, log_level
 
 def checkout_path(relative: str) -> Path:
@@ -83,6 +84,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from shared.cluster import LocalCluster
 
     cfg = load_or_exit(args.config)
+    if args.json and (why := unwritable(args.json)):  # before the cluster starts, not after the whole run
+        print(f"robion demo: --json: {why}", file=sys.stderr)
+        return 2
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
     # A stop (Ctrl-C, SIGTERM) at any point stops the fleet and the cluster, as `robion up` does.
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
@@ -299,7 +303,13 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"unrecognized arguments: {' '.join(unknown)}")
         args.rest = unknown + args.rest
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s robion %(levelname)s %(message)s")
-    return args.fn(args)
+    try:
+        return args.fn(args)
+    except BrokenPipeError:
+        # The reader left (`robion models --json | head -2`): what is left to print has nowhere to go. Python's
+        # recipe: point stdout at /dev/null, so its flush at exit does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 if __name__ == "__main__":

@@ -308,3 +308,12 @@ def test_an_installed_package_finds_the_demo_config_and_benchmarks_in_the_workin
     monkeypatch.chdir(work)
     assert cli.checkout_path("configs/demo.yaml") == work / "configs" / "demo.yaml"
     assert cli.checkout_path("bench/capacity.py") == tmp_path / "site" / "bench" / "capacity.py"  # named as missing
+
+
+@pytest.mark.parametrize("argv", [("shared.cli", "demo"), ("services.fleet.main", "-c", "configs/demo.yaml")])
+def test_a_report_file_that_cannot_be_written_is_refused_before_the_run(tmp_path, argv):
+    """`robion demo --json` into a missing folder ran the whole demo, then the fleet ended in a traceback."""
+    res = run(*argv, "--json", str(tmp_path / "missing" / "report.json"), timeout=60)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert "--json: cannot write" in res.stderr and "No such file or directory" in res.stderr, res.stderr
+    assert "starting the cluster" not in res.stdout and not (tmp_path / "missing").exists()

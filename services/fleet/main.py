@@ -12,6 +12,7 @@ import sys
 from services.fleet.robots import check_settings, run_fleet
 from shared.client import RobionError
 from shared.config import dial_address, valid_address
+from shared.files import unwritable
 from shared.service import load_or_exit, log_level, setup_logging, watch_parent
 
 log = logging.getLogger("robion.fleet")
@@ -48,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
         check_settings(robots, hz, duration_s, network, seed)
     except ValueError as exc:
         p.error(f"--{exc}")  # usage and the bad option on stderr, exit code 2
+    if args.json and (why := unwritable(args.json)):
+        p.error(f"--json: {why}")
     if args.address and not valid_address(args.address):  # zmq would raise ZMQError "Invalid argument"
         p.error(f"--address: expected an address like tcp://HOST:PORT, got {args.address!r}")
     try:
