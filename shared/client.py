@@ -114,10 +114,10 @@ def _check_timeout(name: str, value: float) -> float:
 class RobotClient:
     """One robot's connection. Not thread-safe (one ZeroMQ socket); use one client per thread.
 
-    Requests go out only over a live connection to the router: while there is none (the router not started
-    yet, restarting, unreachable), ``submit`` and the blocking calls fail at once with ``UNAVAILABLE``
-    instead of queueing requests that would reach the router late, after their caller gave up on them. A
-    new client gives its first connection up to ``connect_timeout_s`` to come up.
+    Requests go out only over a live connection to the router, never queued to reach it late, after their
+    caller gave up on them. While there is none (the router not started yet, restarting, unreachable),
+    ``submit`` fails at once with ``UNAVAILABLE`` (a new client gives its first connection up to
+    ``connect_timeout_s``), and a blocking call waits for one within its timeout, then fails so.
     """
 
     def __init__(self, address: str, robot_id: str | None = None, timeout_s: float = 10.0,
@@ -182,10 +182,11 @@ class RobotClient:
         Images given as a list are matched to the model's camera names, which the first such call fetches with
         ``metadata()`` (one round trip, at most ``timeout_s``); a mapping by camera name never waits.
         """
-        return self._submit(model, images, state, instruction, request_id, self.timeout_s)
+        return self._submit(model, images, state, instruction, request_id, self.timeout_s, blocking=False)
 
     def _submit(self, model: str, images: Mapping[str, np.ndarray] | Sequence[np.ndarray], state: np.ndarray,
-                instruction: str, request_id: RequestId | None, timeout_s: float) -> RequestId:
+                instruction: str, request_id: RequestId | None, timeout_s: float, blocking: bool) -> RequestId:
+        deadline = time.monotonic() + timeout_s
         if not isinstance(images, Mapping):
             cams = self._camera_names(model, len(images), timeout_s)
             images = dict(zip(cams, images))
@@ -197,7 +198,9 @@ class RobotClient:
         except (TypeError, ValueError, OverflowError) as exc:
             # A dtype that cannot travel, text that is no UTF-8 (lone surrogates), an int id past 64 bits.
             raise RobionError(ErrorCode.BAD_REQUEST, str(exc), str(rid)) from None
-        self._send(rid, model, frames, InferReply, timeout_s)
+        # A blocking call may wait for a connection as long as for its answer; submit only for a new client's first.
+        left = deadline - time.monotonic()
+        self._send(rid, model, frames, InferReply, left if blocking else min(left, self._connect_by - time.monotonic()))
         return rid
 
     def poll(self, timeout_s: float = 0.0) -> list[Completion]:
@@ -248,7 +251,7 @@ class RobotClient:
         (default: the client's) bounds the whole call, a first fetch of the camera names included."""
         timeout_s = self.timeout_s if timeout_s is None else _check_timeout("timeout_s", timeout_s)
         deadline = time.monotonic() + timeout_s
-        rid = self._submit(model, images, state, instruction, None, timeout_s)
+        rid = self._submit(model, images, state, instruction, None, timeout_s, blocking=True)
         done = self._wait_for(rid, deadline - time.monotonic(), reported_s=timeout_s)
         if done.error is not None:
             raise done.error
@@ -293,9 +296,9 @@ class RobotClient:
 
     # -- internals
 
-    def _send(self, rid: RequestId, model: str, frames: list, answer: type, wait_s: float) -> None:
+    def _send(self, rid: RequestId, model: str, frames: list, answer: type, connect_wait_s: float) -> None:
         """Send a request and track it; raise RobionError, with nothing left pending, when it cannot go out.
-        A new client's first connection is waited for, up to ``wait_s`` (the call's timeout)."""
+        Without a connection to the router, one is waited for up to ``connect_wait_s``."""
         # The router answers a request whose id or header it cannot read with id "" (docs/protocol.md): such
         # an answer matches nothing here, so the request would only ever time out. Refuse it before sending.
         # "" included: it is the id of the router's answers to requests it could not read, so a request under
@@ -313,11 +316,10 @@ class RobotClient:
                                                      f"come; give a retry a fresh id", str(rid))
         if self.socket.closed:
             raise RobionError(ErrorCode.BAD_REQUEST, "the client is closed", str(rid))
-        # NOBLOCK: a blocking send would wait until the router is back, past any timeout the caller gave. Only a
-        # new client's first connection is waited for, and only up to connect_timeout_s after the client was made.
-        wait = min(self._connect_by - time.monotonic(), wait_s)
-        if wait > 0:
-            self.socket.poll(math.ceil(wait * 1000), zmq.POLLOUT)
+        # NOBLOCK: a blocking send would wait until the router is back, past any timeout the caller gave. Waiting
+        # here for the connection queues nothing: the request is sent fresh once it is up, or not at all.
+        if connect_wait_s > 0:
+            self.socket.poll(None if math.isinf(connect_wait_s) else math.ceil(connect_wait_s * 1000), zmq.POLLOUT)
         sent_at = time.monotonic()
         try:
             # copy=True: the frames are views of the caller's arrays, and a zero-copy send reads them only when
@@ -327,7 +329,7 @@ class RobotClient:
         except zmq.Again:
             raise RobionError(ErrorCode.UNAVAILABLE, "the router is not reachable (no connection, or its send "
                                                      f"queue of {SEND_QUEUE} is full); retry", str(rid)) from None
-        self._connect_by = 0.0  # connected once: from now on a send without a connection fails at once
+        self._connect_by = 0.0  # connected once: from now on submit without a connection fails at once
         self._pending[rid] = (model, sent_at, message_bytes(frames), answer)
 
     def _next_expiry(self) -> float | None:

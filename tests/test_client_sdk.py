@@ -191,6 +191,10 @@ def test_a_request_is_never_queued_for_a_router_that_is_away():
             with pytest.raises(RobionError):  # and from then on fails at once
                 c.submit("toy-a", images, state)
             assert time.monotonic() - t0 < 0.1 and c.pending() == 0
+            t0 = time.monotonic()
+            with pytest.raises(RobionError) as err:  # a blocking call waits for a connection within its timeout
+                c.ping(timeout_s=0.3)
+            assert err.value.code == ErrorCode.UNAVAILABLE and 0.25 < time.monotonic() - t0 < 1.0
             router = ctx.socket(zmq.ROUTER)
             router.setsockopt(zmq.LINGER, 0)
             router.bind(address)
