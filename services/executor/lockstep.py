@@ -106,8 +106,8 @@ class HostRunner:
                 t[0:2] = [t0, t1]
             elif at == 2:
                 t[2:4] = [t0, t1]
-            else:  # the action stage's time runs from its handoff copy
-                t[3] = t1
+            else:  # the action stage's time: its handoff copy and its run, not a VLM stage run between them
+                t[3] += t1 - t0
 
     def measure(self, index: int, after_previous: bool) -> StageTimes:
         vs, ve, as_, ae = self._ring[index % len(self._ring)]
@@ -623,7 +623,7 @@ class LockstepEngine(Engine):
             # Issued before the running lockstep ended (checked after issuing, so a lockstep that
             # ended while this one was being issued counts as late, with its whole launch time
             # as the host gap: an upper bound).
-            launch.ahead = not runner.done(after.index)
+            launch.ahead = self._still_running(after.index)
             launch.cpu_gap_us = 0.0 if launch.ahead else (issued - decided) * 1e6
         self._index += 1
         self._pending = vlm
@@ -742,9 +742,19 @@ class LockstepEngine(Engine):
             if self._back_to_back:  # the VLM part waited for the host after the end was seen
                 launch.cpu_gap_us = (issued - self._last_end) * 1e6
         else:
-            launch.ahead = not runner.done(after.index)
+            launch.ahead = self._still_running(after.index)
             launch.cpu_gap_us = 0.0 if launch.ahead else (issued - decided) * 1e6
         return expired
+
+    def _still_running(self, index: int) -> bool:
+        """Whether lockstep ``index`` is still running. Asked right after a batch left the queues and was issued,
+        so it must not raise: a device fault raised here lost that batch and the requests its take shed. The
+        wait for lockstep ``index`` meets the same fault and fails what was issued, as designed."""
+        try:
+            return not self.runner.done(index)
+        except Exception:
+            log.exception("querying the end of lockstep %d failed", index)
+            return False
 
     def _predict_end(self, cur: _Launched) -> float | None:
         """perf_counter() time at which ``cur`` should end: its start on the GPU (the previous
