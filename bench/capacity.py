@@ -39,7 +39,9 @@ sys.path.insert(0, ROOT)
 from services.executor.simulation import (PAPER_DEADLINES_MS, CapacityResult, EngineHost, Point,  # noqa: E402
                                           SimConfig, _json_safe, compare_capacity, engine_factory,
                                           served_models)
+from shared.config import NETWORKS  # noqa: E402
 from shared.files import write_atomic  # noqa: E402
+from shared.service import log_level  # noqa: E402
 
 SCHEMA = "robion.capacity/1"
 log = logging.getLogger("bench.capacity")
@@ -68,8 +70,9 @@ def _parse_value(field_type: Any, text: str) -> Any:
 
 
 def parse_engines(text: str, max_batch: int) -> list[EngineSpec]:
-    """``robion,static=robion:sm_policy=static:static_sms=66`` -> engine specs with typed EngineConfig overrides."""
-    from shared.config import EngineConfig
+    """``robion,static=robion:sm_policy=static:static_sms=64`` -> engine specs with typed EngineConfig overrides,
+    checked as a config file's `engine:` is (a max_batch of 0 or 3, an unknown kind: refused, not measured)."""
+    from shared.config import ConfigError, EngineConfig, engine_config
 
     hints = typing.get_type_hints(EngineConfig)
     specs: list[EngineSpec] = []
@@ -90,6 +93,10 @@ def parse_engines(text: str, max_batch: int) -> list[EngineSpec]:
                 raise SystemExit(f"--engines {item!r}: {key}: {exc}") from None
         if any(s.label == label for s in specs):
             raise SystemExit(f"--engines: label {label!r} is used twice")
+        try:
+            engine_config({"kind": kind, **overrides})
+        except ConfigError as exc:
+            raise SystemExit(f"--engines {item!r}: {exc}") from None
         specs.append(EngineSpec(label, kind, overrides))
     if not specs:
         raise SystemExit("--engines: at least one engine is needed")
@@ -110,9 +117,13 @@ def parse_deadlines(text: str | None) -> dict[str, float]:
     out: dict[str, float] = {}
     for item in filter(None, (s.strip() for s in (text or "").split(","))):
         key, eq, ms = item.partition("=")
-        if not eq:
-            raise SystemExit(f"--deadline {item!r}: expected name=ms")
-        out[key] = float(ms)
+        try:
+            value = float(ms) if eq else math.nan
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise SystemExit(f"--deadline {item!r}: expected name=ms with a positive number of milliseconds")
+        out[key] = value
     return out
 
 
@@ -197,6 +208,11 @@ class Report:
             self._fresh.add(model)
             for key in ("capacity", "complete", "ratios", "curves"):
                 self.doc.get(key, {}).pop(model, None)
+            # Nor may an earlier run still claim it (settings.models): one run describes each model's results.
+            for run in self.doc.get("runs", []):
+                ((run.get("settings") or {}).get("models") or {}).pop(model, None)
+            if "runs" in self.doc:
+                self.doc["runs"] = [r for r in self.doc["runs"] if (r.get("settings") or {}).get("models")]
         self.doc["curves"].setdefault(model, {}).setdefault(engine, []).append(_point_dict(point))
         self.doc["complete"].setdefault(model, {})[engine] = False
         self.write()
@@ -335,6 +351,22 @@ def bad_arguments(args: argparse.Namespace, robots: list[int] | None) -> str | N
         return f"--sweep: expected robot counts of at least 1, got {args.sweep!r}"
     if args.seed < 0:  # numpy's SeedSequence refuses it, after the models and the overlap bound are built
         return f"--seed: expected a non-negative integer, got {args.seed}"
+    if args.network not in NETWORKS:
+        return f"--network: expected one of {', '.join(NETWORKS)}, got {args.network!r}"
+    return None
+
+
+def unknown_models(models: dict[str, str], size: str) -> str | None:
+    """An architecture that is not registered or has no such size: found before any model is built."""
+    from shared.models import get_architecture
+
+    for name, arch in models.items():
+        try:
+            sizes = get_architecture(arch).CONFIGS
+        except KeyError as exc:
+            return f"--models {name}: {exc.args[0] if exc.args else exc}"
+        if size not in sizes:
+            return f"--size: {arch} has no size {size!r}; sizes: {', '.join(sorted(sizes))}"
     return None
 
 
@@ -370,24 +402,33 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot", type=Path, help="PNG of the curves (needs matplotlib)")
     p.add_argument("--replot", type=Path, metavar="JSON", help="measure nothing: draw --plot from this results file")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--log-level", type=log_level, default="WARNING")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
     if args.replot:
         if not args.plot:
             raise SystemExit("--replot needs --plot PNG")
-        if not plot(json.loads(args.replot.read_text()), args.plot):
+        try:
+            doc = json.loads(args.replot.read_text())
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"--replot: cannot read {args.replot}: {exc}") from None
+        if not isinstance(doc, dict) or doc.get("schema") != SCHEMA:
+            raise SystemExit(f"--replot: {args.replot} is not a {SCHEMA} file")
+        if not plot(doc, args.plot):
             raise SystemExit(f"no plot written (matplotlib missing or no curves in {args.replot})")
         print(f"wrote {args.plot}")
         return 0
     if not args.models:
         raise SystemExit("--models is required")
 
-    robots = [int(x) for x in args.sweep.split(",") if x.strip()] if args.sweep else None
-    problem = bad_arguments(args, robots)
+    try:
+        robots = [int(x) for x in args.sweep.split(",") if x.strip()] if args.sweep else None
+    except ValueError:
+        p.error(f"--sweep: expected comma-separated robot counts, got {args.sweep!r}")
+    models = parse_models(args.models)
+    problem = bad_arguments(args, robots) or unknown_models(models, args.size)
     if problem:
         p.error(problem)  # before any model is built
-    models = parse_models(args.models)
     engines = parse_engines(args.engines, args.max_batch)
     deadlines = parse_deadlines(args.deadline)
     undated = [n for n, a in models.items() if not {n, a} & deadlines.keys() and a not in PAPER_DEADLINES_MS]

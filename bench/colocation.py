@@ -85,7 +85,7 @@ def run(args) -> dict:
         hosts = {label: EngineHost(engine_factory(e["kind"], served, device, **common,
                                                   **{k: v for k, v in e.items() if k != "kind"}), label=label)
                  for label, e in engines.items()}
-        for total in [int(x) for x in args.robots.split(",")]:
+        for total in args.robots:
             counts = split(total, [m[3] for m in models])
             workload = [RobotGroup(m[0], n, args.hz) for m, n in zip(models, counts) if n > 0]
             labels = list(hosts) if total % 2 == 0 else list(reversed(hosts))  # alternate who runs first
@@ -101,10 +101,10 @@ def run(args) -> dict:
                       f"p99 {res.overall.p99_ms:7.1f} ms", flush=True)
         for h in hosts.values():
             h.close()
-    from capacity import source_commit
+    from capacity import dirty, source_commit
 
     commit = source_commit(short=True) or ""
-    meta = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit,
+    meta = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit, "dirty": dirty(),
             "device": torch.cuda.get_device_name(0) if device.startswith("cuda") else "cpu", "torch": torch.__version__,
             "size": args.size, "hz": args.hz, "epochs": args.epochs, "duration_s": args.duration,
             "command": "python bench/colocation.py " + " ".join(sys.argv[1:])}
@@ -147,6 +147,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="also run Robion (ESF) with engine.shed_late: requests that cannot finish in time are shed")
     p.add_argument("--out", default="")
     args = p.parse_args(argv)
+    known = E4_SCENARIOS if args.experiment == "e4" else E5_SCENARIOS
+    unknown = sorted(set(args.scenarios or ()) - set(known))
+    if unknown:  # they used to be skipped, and an empty result written with exit 0
+        p.error(f"--scenarios: {args.experiment} has no scenario {', '.join(unknown)} (it has {', '.join(known)})")
+    try:
+        args.robots = [int(x) for x in args.robots.split(",") if x.strip()]
+    except ValueError:
+        args.robots = []
+    if not args.robots or min(args.robots) < 1:  # a 0-robot row's NaN attainment turned every mean into null
+        p.error("--robots: expected comma-separated robot counts of at least 1")
     t0 = time.monotonic()
     result = run(args)
     result["meta"]["wall_s"] = round(time.monotonic() - t0, 1)

@@ -475,11 +475,6 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
     for i, m in enumerate(cfg.models):
         if m.name not in hosted:
             raise ConfigError(f"models[{i}]: model {m.name!r} is placed on no executor")
-    _one_of(cfg.engine.kind, ENGINE_KINDS, "engine.kind")
-    _one_of(cfg.engine.policy, POLICIES, "engine.policy")
-    _one_of(cfg.engine.sm_policy, SM_POLICIES, "engine.sm_policy")
-    if cfg.engine.sm_policy == "static" and (cfg.engine.static_sms <= 0 or cfg.engine.static_sms % 8):
-        raise ConfigError("engine.static_sms: sm_policy static needs a positive multiple of 8")
     _validate_engine(cfg.engine)
     _one_of(cfg.control.strategy, STRATEGIES, "control.strategy")
     _one_of(cfg.control.limits.network, NETWORKS, "control.limits.network")
@@ -489,8 +484,21 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
             raise ConfigError(f"fleet.models[{k}]: no model named {name!r}")
 
 
+def engine_config(data: dict) -> EngineConfig:
+    """An EngineConfig from a mapping (a config's `engine:`, a benchmark's overrides) with every check a
+    config file gets, so a benchmark refuses what a cluster would instead of measuring it."""
+    e = _build(EngineConfig, data, "engine")
+    _validate_engine(e)
+    return e
+
+
 def _validate_engine(e: EngineConfig) -> None:
-    """Rules of the comparison engines' knobs (the generic checks ran while loading)."""
+    """Rules of the engine's knobs beyond each field's own (the generic checks ran while loading)."""
+    _one_of(e.kind, ENGINE_KINDS, "engine.kind")
+    _one_of(e.policy, POLICIES, "engine.policy")
+    _one_of(e.sm_policy, SM_POLICIES, "engine.sm_policy")
+    if e.sm_policy == "static" and (e.static_sms <= 0 or e.static_sms % 8):
+        raise ConfigError("engine.static_sms: sm_policy static needs a positive multiple of 8")
     if e.kind == "static" and e.static_sms % 8:
         raise ConfigError("engine.static_sms: engine static needs a multiple of 8 (0: half the SMs)")
     if e.disjoint_sms % 8:

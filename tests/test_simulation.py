@@ -457,6 +457,11 @@ def test_cli_sweep_runs_every_epoch_and_records_what_it_did(tmp_path):
     (["--target", "1.5"], "--target: expected a share"),
     (["--seed", "-1"], "--seed: expected a non-negative integer"),
     ([], "no deadline for toy"),  # the toy is no paper model: it raised ValueError after the engines were built
+    # tracebacks, some only after the models were built and the overlap bound measured
+    (["--sweep", "1.5"], "--sweep: expected comma-separated robot counts"),
+    (["--network", "lte"], "--network: expected one of wifi7"),
+    (["--size", "huge"], "--size: toy has no size 'huge'"),
+    (["--log-level", "chatty"], "--log-level: expected one of debug"),
 ])
 def test_cli_refuses_bad_measurement_arguments_before_building_models(args, message, capsys):
     sys.path.insert(0, os.path.join(ROOT, "bench"))
@@ -465,6 +470,29 @@ def test_cli_refuses_bad_measurement_arguments_before_building_models(args, mess
     with pytest.raises(SystemExit) as exc:
         bench_capacity.main(["--models", "toy", "--size", "tiny", "--device", "cpu", *args])
     assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args,message", [
+    # measured, each to a capacity of 0 written with exit 0
+    (["--engines", "m=monolithic:max_batch=0"], "engine.max_batch: expected a power of two"),
+    (["--max-batch", "3"], "engine.max_batch: expected a power of two"),
+    (["--engines", "bogus"], "engine.kind: expected one of"),
+    (["--deadline", "toy=-5"], "--deadline 'toy=-5': expected name=ms with a positive number"),
+    (["--deadline", "toy=nan"], "--deadline 'toy=nan': expected name=ms with a positive number"),
+    (["--deadline", "toy=abc"], "--deadline 'toy=abc': expected name=ms with a positive number"),
+    (["--models", "nope", "--deadline", "nope=100"], "--models nope: unknown architecture 'nope'"),
+])
+def test_cli_refuses_engines_and_deadlines_a_cluster_would_refuse(args, message, capsys):
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+
+    argv = ["--models", "toy", "--size", "tiny", "--device", "cpu", "--deadline", "toy=100", *args]
+    if "--models" in args:
+        argv = argv[argv.index("--device"):]
+    with pytest.raises(SystemExit) as exc:
+        bench_capacity.main(argv)
+    shown = str(exc.value.code) + capsys.readouterr().err
+    assert exc.value.code != 0 and message in shown, shown
 
 
 def test_merged_results_drop_ratios_of_a_rerun_without_its_baseline(tmp_path):
@@ -513,7 +541,7 @@ def test_a_merged_rerun_replaces_a_model_from_its_first_point_and_keeps_one_targ
                      misses=0, errors={}, no_reply=0, submit_lag_max_ms=0.0, wall_s=0.1)
 
     path = tmp_path / "cap.json"
-    first = bench_capacity.Report(path, {"target": 0.98}, {}, merge=False)
+    first = bench_capacity.Report(path, {"target": 0.98, "models": {"toy": "toy", "other": "toy"}}, {}, merge=False)
     first.point("toy", "robion", point(12, 5))
     first.point("other", "robion", point(3, 5))
     first.model_done("toy", {"robion": CapacityResult("toy", "robion", 0.98, "search", 12, [], [])}, None)
@@ -525,6 +553,20 @@ def test_a_merged_rerun_replaces_a_model_from_its_first_point_and_keeps_one_targ
     assert "toy" not in doc["capacity"] and doc["capacity"]["other"] == {"robion": 3}
     with pytest.raises(SystemExit, match="target 0.98"):
         bench_capacity.Report(path, {"target": 0.9}, {}, merge=True)
+    # The earlier run's settings no longer claim the model measured again: one run describes each model.
+    runs = json.loads(path.read_text())["runs"]
+    assert [sorted(r["settings"]["models"]) for r in runs] == [["other"]]
+
+
+def test_replot_of_a_missing_or_foreign_file_is_a_message(tmp_path):
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+
+    with pytest.raises(SystemExit, match="--replot: cannot read"):
+        bench_capacity.main(["--replot", str(tmp_path / "none.json"), "--plot", str(tmp_path / "x.png")])
+    (tmp_path / "e4.json").write_text(json.dumps({"rows": []}))
+    with pytest.raises(SystemExit, match="is not a robion.capacity/1 file"):
+        bench_capacity.main(["--replot", str(tmp_path / "e4.json"), "--plot", str(tmp_path / "x.png")])
 
 
 def test_meta_does_not_call_an_unknown_tree_clean(tmp_path, monkeypatch):
