@@ -236,3 +236,27 @@ def test_cached_limits_are_reported_for_models_another_executor_was_first_to_hos
     (Path(cfg.control.state_dir) / "limits.json").write_text(json.dumps({key: {"limit": 12}}))
     served = {"toy-b": ServedModel("toy-b", build_model("toy", "tiny"), mc.slo_ms / 1e3)}
     assert measure_limits(cfg, "ex1", served, CPU, measure=False) == {"toy-b": 12}
+
+
+def test_the_key_names_a_network_or_engine_setting_away_from_its_default():
+    """A limit measured over one network or engine setting was reused for another (the key left both out)."""
+    from shared.config import EngineConfig
+
+    base = limit_key("cpu", "toy", "tiny", 2.0, 2, 500.0, "robion", 0.98)
+    assert limit_key("cpu", "toy", "tiny", 2.0, 2, 500.0, "robion", 0.98, "wifi7", EngineConfig()) == base
+    assert limit_key("cpu", "toy", "tiny", 2.0, 2, 500.0, "robion", 0.98, "slow_cloud") == base + "|net:slow_cloud"
+    assert limit_key("cpu", "toy", "tiny", 2.0, 2, 500.0, "robion", 0.98, "wifi7",
+                     EngineConfig(shed_late=True, sm_policy="none")) == base + "|shed_late=True|sm_policy=none"
+
+
+def test_a_limit_cached_at_the_searchs_cap_is_measured_again_under_a_higher_cap(tmp_path):
+    """A search stopped by max_robots found the cap, not the GPU's limit: with the cap raised, the cached value
+    was reused and the limit never grew."""
+    cfg, hosted, key, cache = _setup(tmp_path)  # max_robots 2; the toy model passes it
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(json.dumps({key: {"limit": 1, "max_robots": 1}}))
+    assert measure_limits(cfg, "ex0", hosted.models, CPU) == {"toy-a": 2}
+    entry = json.loads(cache.read_text())[key]
+    assert entry["limit"] == 2 and entry["max_robots"] == 2
+    cache.write_text(json.dumps({key: {"limit": 1, "max_robots": 2}}))  # below its own cap: the GPU's limit
+    assert measure_limits(cfg, "ex0", hosted.models, CPU) == {"toy-a": 1}

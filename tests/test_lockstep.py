@@ -557,14 +557,45 @@ def test_table_timed_with_other_captures_is_not_reused(tmp_path):
 
     current = SMTable("H100", 132, torch.__version__, 2, ["pi0"], gemm_plan=GEMM_PLAN)
     current.save(tmp_path / "now.json")
-    assert _matches(SMTable.load(tmp_path / "now.json"), "H100", torch.__version__)
+    assert _matches(SMTable.load(tmp_path / "now.json"), "H100", torch.__version__, 132)
     # A file written before tables recorded their GEMM plan loads with the default, and is stale.
     doc = json.loads((tmp_path / "now.json").read_text())
     del doc["gemm_plan"]
     (tmp_path / "old.json").write_text(json.dumps(doc))
     old = SMTable.load(tmp_path / "old.json")
-    assert old.gemm_plan == "" and not _matches(old, "H100", torch.__version__)
-    assert not _matches(current, "A100", torch.__version__)
+    assert old.gemm_plan == "" and not _matches(old, "H100", torch.__version__, 132)
+    assert not _matches(current, "A100", torch.__version__, 132)
+    assert not _matches(current, "H100", torch.__version__, 114)  # one name, fewer SMs (a cut-down part)
+
+
+@pytest.mark.parametrize("text", [
+    '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "ent',  # cut off (full disk)
+    "[]",  # not a table
+    '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "new_field": 1}',  # a newer version's
+    '{"sm_count": 132, "torch": "x", "max_batch": 2, "archs": []}',  # no gpu
+    '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "entries": [{"vlm": "a", '
+    '"vlm_batch": 1, "action": "a", "action_batch": 1, "best_sms": "abc", "best_ms": 1.0, "unrestricted_ms": 1.0}]}',
+    '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "entries": [{"vlm": "a", '
+    '"vlm_batch": 1, "action": "a", "action_batch": 1, "best_sms": 140, "best_ms": 1.0, "unrestricted_ms": 1.0}]}',
+])
+def test_a_damaged_table_is_profiled_again_not_fatal(tmp_path, monkeypatch, text):
+    """Each of these crashed the engine's start with a traceback (JSONDecodeError, AttributeError, TypeError), and
+    the executor restarted into the same file: a crash loop. Configured, cached or a seed, it is now passed over."""
+    from services.executor import profiler
+
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "H100")
+    monkeypatch.setattr(torch.cuda, "get_device_properties",
+                        lambda device=None: type("Props", (), {"multi_processor_count": 132})())
+    with pytest.raises(profiler.TableError, match="is no readable SM table"):
+        (tmp_path / "bad.json").write_text(text)
+        SMTable.load(tmp_path / "bad.json")
+    cached = profiler.table_path(tmp_path, "H100", torch.__version__, 2, ["toy"])
+    cached.write_text(text)
+    (tmp_path / "sm-table_seed.json").write_text(text)
+    (tmp_path / "sm-table_dir.json").mkdir()
+    for configured in (str(tmp_path / "bad.json"), None):
+        path, table = profiler.locate_table(torch.device("cuda", 0), ["toy"], 2, configured, str(tmp_path))
+        assert path == cached and table.entries == [] and table.sm_count == 132
 
 
 def test_helpers_and_config_validation():

@@ -23,7 +23,7 @@ import torch
 
 from services.executor.engine import ServedModel, make_engine, resolve_kind
 from services.executor.simulation import SearchCancelled, SimConfig, find_capacity
-from shared.config import ClusterConfig, ModelConfig
+from shared.config import ClusterConfig, EngineConfig, ModelConfig
 from shared.files import write_atomic
 
 log = logging.getLogger("robion.executor")
@@ -33,10 +33,25 @@ def device_name(device: torch.device) -> str:
     return torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
 
 
-def limit_key(gpu: str, arch: str, size: str, hz: float, max_batch: int, slo_ms: float, kind: str, target: float) -> str:
+# Engine settings besides kind and max_batch that change how many robots one GPU serves. A key names those set away
+# from their defaults (and a network other than the default), so the usual config keeps the keys it always had.
+LIMIT_ENGINE_FIELDS = ("policy", "shed_late", "sm_policy", "static_sms", "disjoint_sms", "graphs", "running_batch",
+                       "handoff_slots", "procdisagg_workers", "vlm_devices", "action_devices")
+DEFAULT_NETWORK = "wifi7"
+
+
+def limit_key(gpu: str, arch: str, size: str, hz: float, max_batch: int, slo_ms: float, kind: str, target: float,
+              network: str = DEFAULT_NETWORK, engine: EngineConfig | None = None) -> str:
     """What a limit depends on; fine-tuned variants of one architecture share it (also the
-    key of the traffic bench's limit files, so either can read the other's)."""
-    return "|".join([gpu, f"{arch}:{size}", f"{hz:g}Hz", f"mb{max_batch}", f"{slo_ms:g}ms", kind, f"at{target:g}"])
+    key of the traffic bench's limit files, so either can read the other's). Without the network and the engine's
+    other settings, a limit measured over one network or engine was reused for another."""
+    parts = [gpu, f"{arch}:{size}", f"{hz:g}Hz", f"mb{max_batch}", f"{slo_ms:g}ms", kind, f"at{target:g}"]
+    if network != DEFAULT_NETWORK:
+        parts.append(f"net:{network}")
+    if engine is not None:
+        default = EngineConfig()
+        parts += [f"{f}={getattr(engine, f)}" for f in LIMIT_ENGINE_FIELDS if getattr(engine, f) != getattr(default, f)]
+    return "|".join(parts)
 
 
 class LimitCache:
@@ -120,15 +135,22 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
             continue
         served = models[name]
         key = limit_key(device_name(device), served.model.arch, mc.size, mc.hz, cfg.engine.max_batch, served.slo_s * 1e3,
-                        resolve_kind(cfg.engine.kind, device), lc.target)
+                        resolve_kind(cfg.engine.kind, device), lc.target, lc.network, cfg.engine)
         if key in known:
             limit = cached_limit(known[key])
-            if limit is not None:
+            cap = known[key].get("max_robots") if isinstance(known[key], dict) else None
+            if limit is not None and measure and isinstance(cap, int) and limit >= cap and cap < lc.max_robots:
+                # The search stopped at its cap, not at the GPU's limit: a higher cap may find more.
+                log.info("%s: the cached limit %d of %s was the search's cap; measuring again up to %d",
+                         cache.path, limit, key, lc.max_robots)
+                limit = None
+            elif limit is not None:
                 out[name] = limit
                 continue
-            # Reporting it would crash this executor (int(NaN)) or mislead the solver (int(2.5)).
-            log.warning("%s: %s has limit %r, not a positive integer; measuring it again",
-                        cache.path, key, known[key].get("limit") if isinstance(known[key], dict) else known[key])
+            else:
+                # Reporting it would crash this executor (int(NaN)) or mislead the solver (int(2.5)).
+                log.warning("%s: %s has limit %r, not a positive integer; measuring it again",
+                            cache.path, key, known[key].get("limit") if isinstance(known[key], dict) else known[key])
         if not measure:
             log.warning("no cached robot limit for %s at its settings (%s): it is planned without one until it is "
                         "measured (at the executor's next start) or given in models[].limit", name, key)
@@ -147,7 +169,7 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
             return out
         took = time.monotonic() - t0
         limit = max(1, result.capacity)
-        entry = {"limit": limit, "measured_s": round(took, 1), "points": [
+        entry = {"limit": limit, "max_robots": lc.max_robots, "measured_s": round(took, 1), "points": [
             {"robots": p.robots, "slo_attainment": p.slo_attainment} for p in result.points]}
         cache.write(key, entry)
         known[key] = entry  # a fine-tuned variant of the same architecture and settings reuses it

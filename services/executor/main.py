@@ -123,13 +123,17 @@ def main(argv: list[str] | None = None) -> int:
     transport = ExecutorIO(args.name, cfg, ex_cfg.device, store, slot, hosted, metrics, limits=limits)
     # The engine starts on its own thread while this one answers what the router sends meanwhile.
     took = slot.start_while(hosted, lambda started: transport.answer_while_starting(started, stop))
+    served = sorted(hosted.models)
+    # The slot and the transport hold what is served from now on; this frame lives until the process ends, and its
+    # reference kept the first models' weights (device memory) alive after a reload dropped them.
+    del hosted
     try:
         if stop.is_set():
             # Stopped while the engine started: it never registered, so the control plane never routed
             # anything here; registering now only to withdraw at once would make it plan twice for nothing.
             log.info("stopped during start-up")
         else:
-            log.info("serving %s with the %s engine (ready in %.1f s)", sorted(hosted.models),
+            log.info("serving %s with the %s engine (ready in %.1f s)", served,
                      resolve_kind(cfg.engine.kind, device), took)
             transport.run(stop)
             # Out of routing first, engine second: stopping the engine while the router still

@@ -148,10 +148,33 @@ class SMTable:
 
     @classmethod
     def load(cls, path: str | Path) -> "SMTable":
-        data = json.loads(Path(path).read_text())
-        data["entries"] = [ProfileEntry(**e) for e in data.get("entries", [])]
-        data["plan_entries"] = {k: [ProfileEntry(**e) for e in v] for k, v in data.get("plan_entries", {}).items()}
-        return cls(**data)
+        """Read a table; TableError for a file that is unreadable or no SM table of this version (cut off by a full
+        disk, a list, a key a newer version wrote, a level no green context can have). The executor reads it at
+        every start and reload: a raw exception there was a crash loop."""
+        try:
+            data = json.loads(Path(path).read_text())
+            data["entries"] = [_entry(e) for e in data.get("entries", [])]
+            data["plan_entries"] = {k: [_entry(e) for e in v] for k, v in data.get("plan_entries", {}).items()}
+            table = cls(**data)
+        except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
+            raise TableError(f"{path} is no readable SM table ({type(exc).__name__}: {exc})") from None
+        bad = [e.combo for e in table.entries if e.best_sms is not None and not
+               (isinstance(e.best_sms, int) and 0 < e.best_sms < table.sm_count and e.best_sms % SM_GRANULARITY == 0)]
+        if not isinstance(table.sm_count, int) or bad:
+            raise TableError(f"{path} is no readable SM table (SM levels {bad[:3]} on {table.sm_count!r} SMs)")
+        return table
+
+
+class TableError(ValueError):
+    """An SM table file that cannot be used: unreadable, or not a table of this version."""
+
+
+def _entry(data: dict) -> ProfileEntry:
+    e = ProfileEntry(**data)
+    if not (isinstance(e.vlm, str) and isinstance(e.action, str) and isinstance(e.best_ms, (int, float))
+            and isinstance(e.vlm_batch, int) and isinstance(e.action_batch, int) and isinstance(e.times_ms, dict)):
+        raise TypeError(f"entry {data!r:.120} has a field of the wrong type")
+    return e
 
 
 def combos_for(archs: list[str], batch_sizes: list[int]) -> list[Combo]:
@@ -174,8 +197,19 @@ def table_path(profile_dir: str | Path, gpu: str, torch_version: str, max_batch:
     return Path(profile_dir) / f"sm-table_{_slug(gpu)}_torch{_slug(torch_version)}_mb{max_batch}_{_slug(arch_part)}.json"
 
 
-def _matches(table: SMTable, gpu: str, torch_version: str) -> bool:
-    return table.gpu == gpu and table.torch == torch_version and table.gemm_plan == GEMM_PLAN
+def _matches(table: SMTable, gpu: str, torch_version: str, sm_count: int) -> bool:
+    # The SM count too: one GPU name covers parts with fewer SMs (a MIG slice, a cut-down board).
+    return (table.gpu == gpu and table.torch == torch_version and table.gemm_plan == GEMM_PLAN
+            and table.sm_count == sm_count)
+
+
+def _load_or_warn(path: Path) -> SMTable | None:
+    """The table at ``path``, or None with a warning: a damaged table is profiled again, never fatal."""
+    try:
+        return SMTable.load(path)
+    except TableError as exc:
+        log.warning("%s: profiling anew", exc)
+        return None
 
 
 def _action_changed(table: SMTable, entry: ProfileEntry) -> bool:
@@ -192,30 +226,36 @@ def locate_table(device: torch.device, archs: list[str], max_batch: int, sm_tabl
                     sorted(archs), gemm_plan=GEMM_PLAN)
     batch_sizes = [1 << i for i in range(max_batch.bit_length())]
     wanted = combos_for(sorted(archs), batch_sizes)
+    sms = fresh.sm_count
     if sm_table:
         path = Path(sm_table)
         if path.exists():
-            table = SMTable.load(path)
-            if _matches(table, gpu, version):
+            table = _load_or_warn(path)
+            if table is not None and _matches(table, gpu, version, sms):
                 return path, table
-            log.warning("%s was profiled on %s / torch %s / GEMM plan %r, not %s / torch %s / %r: "
-                        "profiling anew into %s", path, table.gpu, table.torch, table.gemm_plan, gpu, version,
-                        GEMM_PLAN, profile_dir)
+            if table is not None:
+                log.warning("%s was profiled on %s (%s SMs) / torch %s / GEMM plan %r, not %s (%d SMs) / torch %s / "
+                            "%r: profiling anew into %s", path, table.gpu, table.sm_count, table.torch, table.gemm_plan,
+                            gpu, sms, version, GEMM_PLAN, profile_dir)
         else:
             return path, fresh
     path = table_path(profile_dir, gpu, version, max_batch, archs)
     if path.exists():
-        cached = SMTable.load(path)
-        if _matches(cached, gpu, version):
+        cached = _load_or_warn(path)
+        if cached is not None and _matches(cached, gpu, version, sms):
             return path, cached
-        log.warning("%s was timed with other VLM captures (GEMM plan %r): profiling it again", path, cached.gemm_plan)
+        if cached is not None:
+            log.warning("%s was timed with other VLM captures (GEMM plan %r, %s SMs): profiling it again", path,
+                        cached.gemm_plan, cached.sm_count)
     for other in sorted(Path(profile_dir).glob("sm-table_*.json")):
+        if other == path or not other.is_file():
+            continue
         try:
             table = SMTable.load(other)
-        except (ValueError, TypeError, KeyError):
+        except TableError:
             log.warning("ignoring unreadable SM table %s", other)
             continue
-        if _matches(table, gpu, version):
+        if _matches(table, gpu, version, sms):
             # Only entries timed with the action graph as torch captures it: one timed with a
             # planned or confined graph would be served with another (the new table has no
             # plans yet), so it is profiled again.
