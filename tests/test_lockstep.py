@@ -568,6 +568,31 @@ def test_table_timed_with_other_captures_is_not_reused(tmp_path):
     assert not _matches(current, "H100", torch.__version__, 114)  # one name, fewer SMs (a cut-down part)
 
 
+def test_executors_sharing_a_table_file_keep_each_others_entries(tmp_path):
+    """Executors of one cluster share engine.sm_table: ex0 (pi0) and ex1 (smolvla) each saved what it profiled, and
+    the file kept only the last writer's architectures, so the other profiled again at every start."""
+    from services.executor.profiler import GEMM_PLAN
+
+    def table(arch: str, plans: dict) -> SMTable:
+        return SMTable("H100", 132, torch.__version__, 2, [arch], [_entry(arch, 1, arch, 1, 8.0)], gemm_plan=GEMM_PLAN,
+                       action_plans=plans)
+
+    path = tmp_path / "shared.json"
+    table("pi0", {"pi0|1": 96}).save(path)
+    table("smolvla", {"smolvla|1": None}).save(path)
+    both = SMTable.load(path)
+    assert both.archs == ["pi0", "smolvla"] and {e.vlm for e in both.entries} == {"pi0", "smolvla"}
+    assert both.action_plans == {"pi0|1": 96, "smolvla|1": None}
+    newer = table("pi0", {})  # profiled pi0 again: its entries replace the file's, the other's stay
+    newer.entries[0].best_ms = 7.0
+    newer.save(path)
+    again = SMTable.load(path)
+    assert sorted((e.vlm, e.best_ms) for e in again.entries) == [("pi0", 7.0), ("smolvla", 8.0)]
+    other_gpu = SMTable("A100", 108, torch.__version__, 2, ["xr0"], gemm_plan=GEMM_PLAN)
+    other_gpu.save(path)  # another GPU's table is no table to merge into
+    assert SMTable.load(path).archs == ["xr0"]
+
+
 @pytest.mark.parametrize("text", [
     '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "ent',  # cut off (full disk)
     "[]",  # not a table

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import fcntl
 import hashlib
 import importlib
 import json
@@ -143,8 +144,39 @@ class SMTable:
         return all(c in have for c in combos)
 
     def save(self, path: str | Path) -> None:
-        # Executors sharing a profile dir may save at once.
-        write_atomic(path, json.dumps(dataclasses.asdict(self), indent=1) + "\n")
+        """Write the table. Executors sharing one file (a cluster's engine.sm_table) profile their own
+        architectures, maybe at the same time: under a lock on a file beside it, what the file already holds for
+        the same GPU and torch is kept beside this table, or the last writer dropped the others' minutes of
+        profiling (and they profiled again at every start)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path.with_name(path.name + ".lock"), "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+            merged = self
+            try:
+                there = SMTable.load(path) if path.exists() else None
+            except TableError:
+                there = None  # damaged: replaced
+            if there is not None and _matches(there, self.gpu, self.torch, self.sm_count):
+                merged = there.merged_with(self)
+            write_atomic(path, json.dumps(dataclasses.asdict(merged), indent=1) + "\n")
+
+    def merged_with(self, new: "SMTable") -> "SMTable":
+        """This table with ``new``'s entries and action graphs added; where both have them, ``new``'s. An action
+        graph is taken whole (its plan, confinement and candidate timings) from the table that last tried it."""
+        entries = {e.combo: e for e in self.entries}
+        entries.update({e.combo: e for e in new.entries})
+        plans, confine, plan_entries = {}, {}, {}
+        for key in set(self.plans()) | set(new.plans()) | set(self.plan_entries) | set(new.plan_entries):
+            src = new if key in new.plans() or key in new.plan_entries else self
+            if key in src.action_plans:
+                plans[key] = src.action_plans[key]
+            if key in src.action_confine:
+                confine[key] = src.action_confine[key]
+            if key in src.plan_entries:
+                plan_entries[key] = src.plan_entries[key]
+        return dataclasses.replace(new, archs=sorted(set(self.archs) | set(new.archs)), entries=list(entries.values()),
+                                   action_plans=plans, action_confine=confine, plan_entries=plan_entries)
 
     @classmethod
     def load(cls, path: str | Path) -> "SMTable":
