@@ -236,6 +236,10 @@ def test_cached_limits_are_reported_for_models_another_executor_was_first_to_hos
     (Path(cfg.control.state_dir) / "limits.json").write_text(json.dumps({key: {"limit": 12}}))
     served = {"toy-b": ServedModel("toy-b", build_model("toy", "tiny"), mc.slo_ms / 1e3)}
     assert measure_limits(cfg, "ex1", served, CPU, measure=False) == {"toy-b": 12}
+    # At start-up too (measure=True): ex1 reports the cached limit, and measures nothing (toy-b is ex0's to measure).
+    assert measure_limits(cfg, "ex1", served, CPU) == {"toy-b": 12}
+    (Path(cfg.control.state_dir) / "limits.json").write_text("{}")
+    assert measure_limits(cfg, "ex1", served, CPU) == {}
 
 
 def test_the_key_names_a_network_or_engine_setting_away_from_its_default():

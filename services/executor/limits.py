@@ -128,8 +128,9 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
     out: dict[str, int] = {}
     # Measured only by a model's first host in the config, so two executors never search for the same limit. A
     # cached one is reported by every host: a reload after an apply moved a model to an executor that was not its
-    # first host in this process's file would otherwise report it nowhere.
-    for name in owned_models(cfg, executor, list(models)) if measure else list(models):
+    # first host in this process's file would otherwise report it nowhere (nor would a start while that host is down).
+    owned = set(owned_models(cfg, executor, list(models))) if measure else set()
+    for name in models:
         mc = settings[name] if settings is not None and name in settings else cfg.model(name)
         if mc.limit is not None:
             continue
@@ -139,7 +140,7 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
         if key in known:
             limit = cached_limit(known[key])
             cap = known[key].get("max_robots") if isinstance(known[key], dict) else None
-            if limit is not None and measure and isinstance(cap, int) and limit >= cap and cap < lc.max_robots:
+            if limit is not None and name in owned and isinstance(cap, int) and limit >= cap and cap < lc.max_robots:
                 # The search stopped at its cap, not at the GPU's limit: a higher cap may find more.
                 log.info("%s: the cached limit %d of %s was the search's cap; measuring again up to %d",
                          cache.path, limit, key, lc.max_robots)
@@ -151,9 +152,10 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
                 # Reporting it would crash this executor (int(NaN)) or mislead the solver (int(2.5)).
                 log.warning("%s: %s has limit %r, not a positive integer; measuring it again",
                             cache.path, key, known[key].get("limit") if isinstance(known[key], dict) else known[key])
-        if not measure:
-            log.warning("no cached robot limit for %s at its settings (%s): it is planned without one until it is "
-                        "measured (at the executor's next start) or given in models[].limit", name, key)
+        if name not in owned:
+            if not measure:
+                log.warning("no cached robot limit for %s at its settings (%s): it is planned without one until it "
+                            "is measured (at the executor's next start) or given in models[].limit", name, key)
             continue
         log.info("measuring the robot limit of %s (%s) at %g Hz ...", name, key, mc.hz)
         t0 = time.monotonic()
