@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -20,6 +23,17 @@ def unwritable(path: str | Path) -> str | None:
     if not existed:
         path.unlink(missing_ok=True)
     return None
+
+
+@contextlib.contextmanager
+def exclusive(path: str | Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``<path>.lock`` (a file of its own, so an atomic replace of ``path`` keeps it):
+    processes sharing a file read, change and replace it in turn, and none drops another's new contents."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.with_name(path.name + ".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        yield
 
 
 def write_atomic(path: str | Path, text: str) -> None:

@@ -11,7 +11,6 @@ measure in parallel and nothing is measured twice.
 from __future__ import annotations
 
 import dataclasses
-import fcntl
 import json
 import logging
 import threading
@@ -23,8 +22,8 @@ import torch
 
 from services.executor.engine import ServedModel, make_engine, resolve_kind
 from services.executor.simulation import SearchCancelled, SimConfig, find_capacity
-from shared.config import ClusterConfig, EngineConfig, ModelConfig
-from shared.files import write_atomic
+from shared.config import ClusterConfig, EngineConfig, LimitsConfig, ModelConfig
+from shared.files import exclusive, write_atomic
 
 log = logging.getLogger("robion.executor")
 
@@ -37,7 +36,7 @@ def device_name(device: torch.device) -> str:
 # from their defaults (and a network other than the default), so the usual config keeps the keys it always had.
 LIMIT_ENGINE_FIELDS = ("policy", "shed_late", "sm_policy", "static_sms", "disjoint_sms", "graphs", "running_batch",
                        "handoff_slots", "procdisagg_workers", "vlm_devices", "action_devices")
-DEFAULT_NETWORK = "wifi7"
+DEFAULT_NETWORK = LimitsConfig.network
 
 
 def limit_key(gpu: str, arch: str, size: str, hz: float, max_batch: int, slo_ms: float, kind: str, target: float,
@@ -77,9 +76,7 @@ class LimitCache:
         Executors on other GPUs write the same file: the read-modify-replace runs under an exclusive lock on a
         file beside it, or two overlapping writes would each drop the other's new entries."""
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            with open(self.path.with_name(self.path.name + ".lock"), "a") as lock:
-                fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+            with exclusive(self.path):
                 data = self.read()
                 data[key] = entry
                 write_atomic(self.path, json.dumps(data, indent=2, sort_keys=True))

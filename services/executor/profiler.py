@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import fcntl
 import hashlib
 import importlib
 import json
@@ -39,7 +38,7 @@ from pathlib import Path
 import torch
 
 from services.executor.sm import SM_GRANULARITY, Level, level_name, parse_level
-from shared.files import write_atomic
+from shared.files import exclusive, write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -149,9 +148,7 @@ class SMTable:
         the same GPU and torch is kept beside this table, or the last writer dropped the others' minutes of
         profiling (and they profiled again at every start)."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path.with_name(path.name + ".lock"), "a") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        with exclusive(path):
             merged = self
             try:
                 there = SMTable.load(path) if path.exists() else None
