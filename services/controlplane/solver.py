@@ -872,7 +872,9 @@ def solve_ip(
     # given, not the time left: the same problem and limit must take the same path on every run.
     num_vars = sum(len(m.gpus) for m in problem.models if m.robots)
     if num_vars > _MAX_IP_VARS_PER_S * time_limit_s:
-        return fallback(f"an integer program of {num_vars} (model, GPU) pairs is too large for the time left")
+        return fallback(f"an integer program of {num_vars} (model, GPU) pairs is too large for the time limit")
+    # CP-SAT's deterministic budget, from the inputs alone (see _cp_sat_parameters).
+    work = time_limit_s * _DETERMINISTIC_SHARE
     try:
         ip = _build_ip(problem, hosted, obj_bound, deadline)
     except _OutOfTime:
@@ -881,7 +883,7 @@ def solve_ip(
         # The greedy plan gets stuck on tight partial placements. A search for any plan (the constraints
         # without the objective) finds one there in milliseconds, where the full model's search can end
         # the time limit with none, and the control plane then split robots evenly, over the GPUs' limits.
-        greedy = _first_plan(problem, ip, deadline, time_limit_s, random_seed)
+        greedy = _first_plan(problem, ip, deadline, work * _FIRST_PLAN_SHARE, random_seed)
         start_source = "cp-sat"
     if greedy is not None:
         _add_hint(problem, ip, greedy)
@@ -890,7 +892,7 @@ def solve_ip(
         return fallback("the time limit passed while building the integer program")
 
     solver = cp_model.CpSolver()
-    _cp_sat_parameters(solver, remaining, time_limit_s * _DETERMINISTIC_SHARE, num_workers, random_seed)
+    _cp_sat_parameters(solver, remaining, work, num_workers, random_seed)
     if num_vars > _SYMMETRY_MAX_VARS:
         # CP-SAT's symmetry detection ignored the time limit on large models (31 s over an 8 s limit at
         # 8192 pairs); the ordering constraints in _build_ip already break the symmetry between GPUs.
@@ -920,19 +922,18 @@ def solve_ip(
                    best_bound=bound, source="cp-sat")
 
 
-def _first_plan(problem: PlanProblem, ip: _IpModel, deadline: float, time_limit_s: float,
+def _first_plan(problem: PlanProblem, ip: _IpModel, deadline: float, work: float,
                 random_seed: int) -> dict[str, dict[int, int]] | None:
     """Any plan within the limits: CP-SAT on the constraints of ``ip`` without its objective, stopped at the
-    first solution, for at most _FIRST_PLAN_SHARE of the time left (and of the solve's deterministic
-    budget). None when it finds none in that time."""
+    first solution, for at most _FIRST_PLAN_SHARE of the time left and ``work`` of deterministic time. None
+    when it finds none in that time."""
     remaining = deadline - time.perf_counter()
     if remaining < 2 * _MIN_SOLVE_S:
         return None
     mdl = ip.mdl.clone()  # the same variables, by index, so ip.r reads the solution
     mdl.clear_objective()
     solver = cp_model.CpSolver()
-    _cp_sat_parameters(solver, remaining * _FIRST_PLAN_SHARE, time_limit_s * _DETERMINISTIC_SHARE * _FIRST_PLAN_SHARE,
-                       1, random_seed)
+    _cp_sat_parameters(solver, remaining * _FIRST_PLAN_SHARE, work, 1, random_seed)
     solver.parameters.stop_after_first_solution = True
     status = solver.solve(mdl)
     log.debug("CP-SAT first plan: %s in %.3fs", solver.status_name(status), solver.wall_time)
