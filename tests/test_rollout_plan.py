@@ -352,3 +352,42 @@ def test_a_replica_outside_the_config_is_reloaded_with_the_applied_settings_of_i
     data = {"models": [{"name": "a", "arch": "pi0"}, {"name": "b", "arch": "pi0"}, {"name": "c", "arch": "xr0"}],
             "executors": [{"name": "ex0", "models": ["a", "b"]}, {"name": "ex1", "models": ["c"]}]}
     assert [s.executor for s in plan_steps(c, config_from_dict(data), st)] == []
+
+
+def test_a_model_the_apply_retires_does_not_hold_its_last_host_back():
+    """b is retired: the new config defines only a. Its only host ex0 must still drop it. The step was skipped
+    ("the only host of ['b'], which its placement change drops") when ex0 came back from a restart with its
+    file's models (the reconcile's step names nothing unhosted), and whenever an operator had drained ex0, so
+    the retired model came back into routing, or was never dropped, and the same apply failed every time."""
+    from services.controlplane.rollout import Rollout, Step, plan_steps
+
+    c, st = _serving({"ex0": ["a", "b"], "ex1": ["a"]})
+    new = config_from_dict({"models": [{"name": "a", "arch": "pi0"}],
+                            "executors": [{"name": "ex0", "models": ["a"]}, {"name": "ex1", "models": ["a"]}]})
+    steps = plan_steps(c, new, st)
+    assert [(s.executor, s.unhosted) for s in steps] == [("ex0", [])]  # b is retired, not left unhosted
+    st.replace_config(new)
+    # As _reconcile queues it for a restarted ex0: no model named unhosted.
+    ro = Rollout([Step("ex0", [new.model("a")])])
+    loads = []
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=1.0)
+    assert ro.failed == [] and st.executors["ex0"].draining
+    # An operator's drain of the only host: the plan counts it as serving nothing, and so does the step.
+    c, st = _serving({"ex0": ["a", "b"], "ex1": ["a"]})
+    st.set_drained("ex0", True)
+    steps = plan_steps(c, new, st)
+    st.replace_config(new)
+    ro = Rollout(steps)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=1.0)
+    assert [s.executor for s in steps] == ["ex0"] and ro.failed == [] and ro.current.started
+
+
+def test_a_model_the_apply_keeps_still_holds_its_last_host_back():
+    """The check the retired model slipped through still guards a defined one: ex1 was to host b by now and
+    did not, so ex0 keeps b rather than leave it with no host."""
+    from services.controlplane.rollout import Rollout, Step
+
+    c, st = _serving({"ex0": ["a", "b"], "ex1": ["a"]})
+    ro = Rollout([Step("ex0", [c.model("a")])])
+    ro.tick(st, lambda ex, models, load_id: None, now=1.0)
+    assert ro.failed == ["ex0"] and not st.executors["ex0"].draining

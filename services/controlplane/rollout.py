@@ -120,9 +120,11 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
     # executor's models all have another serving host at that point; only where none has (a swap of two
     # single-hosted models) does a model go without a host, and the step names it.
     serving = _serving(state)
+    defined = {m.name for m in new.models}
 
     def unhosted(step: Step) -> list[str]:
-        return sorted(_only_host(serving, step.executor, serving.get(step.executor, set())))
+        # A model the new config no longer defines is retired, not left without a host.
+        return sorted(_only_host(serving, step.executor, serving.get(step.executor, set())) & defined)
 
     ordered: list[Step] = []
     while pending:
@@ -187,8 +189,11 @@ class Rollout:
                     self._skip(step)
                 return
             self._gone_since = None
-            only = _only_host(_serving(state), step.executor, state.executors[step.executor].models)
-            lost = sorted(only - {m.name for m in step.models} - set(step.unhosted))
+            # What the executor serves now, as plan_steps counted it (nothing while an operator drains it), of the
+            # models the desired config still defines: dropping a retired model loses no host it needs.
+            serving = _serving(state)
+            only = _only_host(serving, step.executor, serving.get(step.executor, set()))
+            lost = sorted((only & {m.name for m in state.cfg.models}) - {m.name for m in step.models} - set(step.unhosted))
             if lost:
                 # The plan counted on another executor serving these by now; its step failed (or it left). Dropping
                 # them here would leave them with no host at all, not just for this reload.
