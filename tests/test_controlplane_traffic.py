@@ -227,6 +227,35 @@ def test_an_apply_drops_measured_limits_of_models_whose_rate_or_deadline_changed
     assert st.table.limits == {"A": 8, "B": 30}
 
 
+def test_a_limit_reported_for_a_models_old_settings_is_not_taken_for_its_new_ones(caplog):
+    """The apply dropped A's limit measured at 2 Hz, but an executor still on the old settings (restarted from its
+    file, or registering again before its reload) reported it again, and the plane planned A at 10 Hz with it for
+    good: the reload's registration, measured at 10 Hz or not yet, never took it away. A limit counts only from a
+    registration whose settings of the model are the desired ones."""
+    import dataclasses
+
+    from services.controlplane.state import ClusterState
+    from shared.config import config_from_dict, settings_digest
+    from shared.protocol import ModelInfo
+
+    cfg = config_from_dict({"models": [{"name": "A", "arch": "toy", "robots": 4}, {"name": "B", "arch": "toy", "robots": 2}],
+                            "executors": [{"name": "ex0", "models": ["A", "B"]}]})
+    info = ModelInfo.from_wire(INFO)
+    st = ClusterState(cfg)
+    old = {m.name: settings_digest(m) for m in cfg.models}
+    st.register("ex0", "cpu", {"A": info, "B": info}, limits={"A": 40, "B": 30}, instance="a", settings=old)
+    assert st.table.limits == {"A": 40, "B": 30}
+    faster = dataclasses.replace(cfg, models=[dataclasses.replace(cfg.models[0], hz=10.0), cfg.models[1]])
+    st.replace_config(faster)
+    with caplog.at_level("WARNING", logger="robion.control"):
+        st.register("ex0", "cpu", {"A": info, "B": info}, limits={"A": 40, "B": 30}, instance="b", settings=old)
+    assert st.table.limits == {"B": 30}, st.table.limits
+    assert "settings other than the desired ones, ignored: ['A']" in caplog.text
+    new = {m.name: settings_digest(m) for m in faster.models}
+    st.register("ex0", "cpu", {"A": info, "B": info}, limits={"A": 8, "B": 30}, instance="b", settings=new)
+    assert st.table.limits == {"A": 8, "B": 30}
+
+
 def _full_placement_config(limits: list[int], robots: list[int], executors: int, **control):
     from shared.config import config_from_dict
 

@@ -7,7 +7,7 @@ import time
 from dataclasses import dataclass, field
 
 from services.controlplane.traffic import Quotas, assign
-from shared.config import ClusterConfig, ModelConfig
+from shared.config import ClusterConfig, ModelConfig, settings_digest
 from shared.control import RoutingTable
 from shared.protocol import ModelInfo
 
@@ -122,8 +122,15 @@ class ClusterState:
         bad = {m: c for m, c in limits.items() if not valid_limit(c)}
         if bad:
             log.warning("executor %s reported robot limits that are not positive integers, ignored: %s", name, bad)
+        # A limit holds for the settings it was measured at. An executor that still runs a model's settings from
+        # before an apply (restarted from its file, or back before its reload) reports the old settings' limit:
+        # taken for the new ones, it would plan robots at another rate or deadline until a restart of the plane.
+        stale = sorted(m for m, c in limits.items() if valid_limit(c) and not self._current(m, settings))
+        if stale:
+            log.warning("executor %s reported robot limits for settings other than the desired ones, ignored: %s",
+                     name, stale)
         measured_before = dict(self.measured_limits)
-        self.measured_limits.update({m: c for m, c in limits.items() if valid_limit(c)})
+        self.measured_limits.update({m: c for m, c in limits.items() if valid_limit(c) and m not in stale})
         self.described.update(models)
         old = self.executors.get(name)
         # A registry entry's drain (a placement change's, or the executor's own as it shuts down) belongs to
@@ -135,6 +142,16 @@ class ClusterState:
         # A limit measured or changed since the last solve (a model's first measurement, one after a reload)
         # re-solves the quotas even when the routes stay the same.
         self._rebuild(force=self.measured_limits != measured_before)
+
+    def _current(self, model: str, settings: dict[str, str] | None) -> bool:
+        """Whether an executor's registered settings of ``model`` are the desired state's (None: it sent no digests,
+        and is taken at its word)."""
+        if settings is None:
+            return True
+        try:
+            return settings.get(model) == settings_digest(self.cfg.model(model))
+        except KeyError:
+            return False
 
     def set_draining(self, name: str, draining: bool) -> bool:
         """A placement change's drain of a registered executor (lifted when its step ends)."""
