@@ -239,8 +239,18 @@ def _ctl(args: argparse.Namespace) -> int:
     end = time.monotonic() + args.timeout
     while time.monotonic() < end:
         status = control_status(address, timeout_s=2.0)
-        rollout = (status or {}).get("rollout") or {}
-        if status and not rollout.get("pending"):
+        if status is None:  # not answering for a moment (a long solve); the wait goes on
+            time.sleep(0.2)
+            continue
+        rollout = status.get("apply") or {}
+        if rollout.get("id") != reply.get("rollout"):
+            # The control plane restarted (it knows only its file and applies nothing until an apply of its own),
+            # or another apply followed this one: nothing says how this one ended.
+            print("placement change: the control plane no longer knows this apply (it restarted, or another apply "
+                  "followed); its outcome is unknown: see `robion ctl status`, and apply the file again to be sure",
+                  file=sys.stderr)
+            return 1
+        if not rollout.get("pending"):
             print(f"placement change done: reloaded {rollout.get('done', [])}"
                   + (f", FAILED {rollout['failed']}" if rollout.get("failed") else ""))
             return 1 if rollout.get("failed") else 0

@@ -78,3 +78,38 @@ def test_failing_periodic_work_does_not_end_the_plane(plane, monkeypatch):
     assert len(calls) >= 3  # it kept ticking after the first failure
     monkeypatch.undo()
     assert control_status(address, timeout_s=5) is not None  # and kept answering
+
+
+def test_apply_that_a_restarted_control_plane_forgot_is_not_reported_done(tmp_path):
+    """`robion ctl apply` waits for its rollout. A control plane restarted meanwhile has no rollout, and the wait
+    read that as finished: "placement change done: reloaded []", exit 0, although nothing reloaded (a restarted
+    plane applies nothing until an apply of its own). Each rollout has an id now, and the wait checks for its own."""
+    from tests.helpers import TOY_INFO, start_control_plane, wait_for
+
+    path, data = cluster_config(tmp_path)  # ex0: toy-a, toy-b; ex1: toy-a
+    cfg, stop, t = start_control_plane(path, data)
+    address = cfg.control.bind
+    for name, models in (("ex0", ["toy-a", "toy-b"]), ("ex1", ["toy-a"])):
+        reply = control_request(address, "register", timeout_s=5, executor=name, device="cpu",
+                                models={m: TOY_INFO for m in models})
+        assert reply is not None and reply["kind"] == "registered", reply
+    new = yaml.safe_load(path.read_text())
+    new["executors"][1]["models"] = ["toy-a", "toy-b"]
+    new_path = tmp_path / "new.yaml"
+    new_path.write_text(yaml.safe_dump(new))
+    cli = subprocess.Popen([sys.executable, "-m", "shared.cli", "ctl", "apply", str(new_path), "-c", str(path),
+                            "--timeout", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        # No router polls this plane, so ex1's step waits drained: the rollout stays pending.
+        assert wait_for(lambda: ((control_status(address, 2) or {}).get("rollout") or {}).get("pending") == ["ex1"], 30)
+        stop.set()
+        t.join(10)
+        _, stop, t = start_control_plane(path, data)
+        out, err = cli.communicate(timeout=60)
+    finally:
+        cli.kill()
+        stop.set()
+        t.join(10)
+    assert cli.returncode == 1, out
+    assert "placement change done" not in out
+    assert "the control plane no longer knows this apply" in err, err

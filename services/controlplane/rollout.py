@@ -165,6 +165,9 @@ class Rollout:
         self._gone_since: float | None = None
         self.done_steps: list[str] = []
         self.failed: list[str] = []
+        # Names this rollout in `status`: `robion ctl apply` waits for its own, and can tell it from one a restarted
+        # control plane (which forgot it) or a later reconcile shows.
+        self.id = uuid.uuid4().hex[:12]
 
     @property
     def current(self) -> Step | None:
@@ -275,5 +278,5 @@ class Rollout:
         # Otherwise the same process re-registering while it reloads (it lost the control plane): keep waiting.
 
     def status(self) -> dict:
-        return {"pending": [s.executor for s in self.pending], "done": self.done_steps, "failed": self.failed,
+        return {"id": self.id, "pending": [s.executor for s in self.pending], "done": self.done_steps, "failed": self.failed,
                 "current": self.current.executor if self.current and self.current.started else None}

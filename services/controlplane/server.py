@@ -70,6 +70,8 @@ class ControlPlane:
         self._published: set[str] = set()
         self._assigned: set[tuple[str, str]] = set()
         self.rollout: Rollout | None = None
+        # The last apply's rollout, kept after a reconcile's takes its place: `status` reports it as `apply`.
+        self.applied_rollout: Rollout | None = None
         # Whether an `apply` changed the desired state in this process's lifetime (see _reconcile), and the
         # process of each configured executor already checked against it.
         self.applied = False
@@ -229,7 +231,7 @@ class ControlPlane:
             # The processes registered now are this apply's to change (its steps); _reconcile takes those
             # that start or come back later. Checked again, a failed step's executor would be retried at once.
             self._reconciled = {name: ex.instance for name, ex in st.executors.items()}
-            self.rollout = Rollout(steps)
+            self.rollout = self.applied_rollout = Rollout(steps)
             log.info("apply: new desired state, table v%d; executors to reload: %s", st.table.version,
                      [s.executor for s in steps])
             unhosted = {s.executor: s.unhosted for s in steps if s.unhosted}
@@ -237,7 +239,7 @@ class ControlPlane:
                 log.warning("apply: while %s reloads no other executor serves %s: their requests are answered "
                             "UNAVAILABLE until it is back", name, models)
             return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version,
-                               unhosted=unhosted)
+                               unhosted=unhosted, rollout=self.rollout.id)
         name = _name(msg, "executor")
         if kind == "drain" and peer == name.encode():
             # The executor drains itself as it shuts down (ExecutorIO.withdraw; its control socket's identity
@@ -346,6 +348,7 @@ class ControlPlane:
         elif kind == "status":
             status = st.status()
             status["rollout"] = self.rollout.status() if self.rollout is not None else None
+            status["apply"] = self.applied_rollout.status() if self.applied_rollout is not None else None
             self._reply(peer, "status", status=status)
         else:  # apply, drain, resume
             self._admin(peer, kind, msg)
