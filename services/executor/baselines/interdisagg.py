@@ -235,7 +235,7 @@ class InterDisaggEngine(Engine):
             if w.cuda:
                 torch.cuda.set_device(w.device)
                 w.stream = torch.cuda.Stream(w.device)
-                w.events = [torch.cuda.Event(enable_timing=True) for _ in range(3)]
+                w.events = [torch.cuda.Event(enable_timing=True) for _ in range(4)]
                 pools = None
                 if graphs:
                     from services.executor.graphs import GraphPools
@@ -358,7 +358,10 @@ class InterDisaggEngine(Engine):
             # Chosen while the VLM stage runs on the device; may wait for a free slot (back-pressure).
             target = self._acquire(model, b)
             a, slot = target
+            t_copy = time.monotonic()  # the handoff's time is its copy's, not the wait for a slot before it
             with w.stream_ctx():
+                if w.cuda:
+                    w.events[3].record(w.stream)
                 # On the VLM worker's stream: the next VLM batch cannot overwrite vlm_out before
                 # the copy read it. Cross-device, torch copies peer-to-peer where enabled.
                 a.ring[(model, b)][slot].flat.copy_(st.vlm_out[b].flat, non_blocking=True)
@@ -367,9 +370,9 @@ class InterDisaggEngine(Engine):
             if w.cuda:
                 w.events[2].synchronize()
                 vlm_ms = w.events[0].elapsed_time(w.events[1])
-                handoff_ms = w.events[1].elapsed_time(w.events[2])
+                handoff_ms = w.events[3].elapsed_time(w.events[2])
             else:
-                vlm_ms, handoff_ms = (t_vlm - admitted) * 1e3, (time.monotonic() - t_vlm) * 1e3
+                vlm_ms, handoff_ms = (t_vlm - admitted) * 1e3, (time.monotonic() - t_copy) * 1e3
             vlm_end = time.monotonic()
         except Exception as exc:
             log.exception("interdisagg: VLM batch of %d for %s failed", b, model)

@@ -57,7 +57,6 @@ from shared.protocol import ErrorCode
 
 log = logging.getLogger(__name__)
 
-IN_SLOTS = 2  # input slots per model: one being read by the VLM process, one being filled
 
 
 # ----------------------------------------------------------------------------- telemetry
@@ -73,7 +72,7 @@ class StepRecord:
     row_steps: list[int]  # each row's step index before this step (several values: requests at different steps)
     admitted: int  # requests merged into the running batch just before this step
     finished: int  # requests that left after this step
-    step_ms: float | None  # GPU time of the step (admission copies included); None when not measured
+    step_ms: float | None  # GPU time of the step graph (admission copies before it excluded); None when not measured
     inspect_us: float  # host time checking the channel and packing arrivals before this step
 
     # Names the capacity harness's telemetry summary reads from lockstep records.
@@ -131,7 +130,7 @@ class _ModelPlan:
 
     name: str
     model: Any  # the VLAModel (weights shared through CUDA IPC / shared memory)
-    in_flat: list[torch.Tensor]  # IN_SLOTS host shared-memory input slots (flat uint8)
+    in_flat: torch.Tensor  # the host shared-memory input slot (flat uint8) the front fills with a batch
     in_specs: dict  # name -> (shape, dtype) of one slot at max_batch
     ring_flat: torch.Tensor  # device handoff ring (flat uint8): groups x max_batch requests
     ring_specs: dict  # name -> (shape, dtype) of the whole ring (dim 0: groups * max_batch)
@@ -174,17 +173,17 @@ class _Obs:
 
 # ----------------------------------------------------------------------------- VLM process
 
-def vlm_worker(shared: _Shared, inbox, to_action, free_groups, free_inputs, results) -> None:
+def vlm_worker(shared: _Shared, inbox, to_action, free_groups, vlm_ready, results) -> None:
     """Batches from the front -> VLM graph -> handoff slots -> control message to the action process."""
     try:
-        _vlm_loop(shared, inbox, to_action, free_groups, free_inputs, results)
+        _vlm_loop(shared, inbox, to_action, free_groups, vlm_ready, results)
     except Exception as exc:  # a dead stage must not leave the front waiting forever
         log.exception("VLM process failed")
         results.put(("fatal", f"VLM process: {type(exc).__name__}: {exc}"))
 
 
 @torch.no_grad()
-def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, free_inputs, results) -> None:
+def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, vlm_ready, results) -> None:
     from services.executor.lockstep import batch_sizes
     from services.executor.stages import BufferedStages
 
@@ -209,7 +208,7 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, free_inputs, resul
                 st.capture_vlm(b, {None})
         stages.append(st)
         ring.append(_views(p.ring_flat, p.ring_specs))
-        inputs.append([_views(f, p.in_specs) for f in p.in_flat])
+        inputs.append(_views(p.in_flat, p.in_specs))
         free.append(deque(range(p.groups)))
     if cuda:
         torch.cuda.synchronize(device)
@@ -220,17 +219,14 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, free_inputs, resul
         if msg is None:
             to_action.put(None)
             return
-        mi, slot, seqs, admitted = msg
+        mi, seqs, admitted = msg
         b = len(seqs)
         p, st = shared.plans[mi], stages[mi]
-        slot_held, g = True, None  # given back on failure: kept, they would stall this model for good
+        g = None  # given back on failure: kept, it would stall this model for good
         try:
-            v = inputs[mi][slot]
-            np_in = {k: t.numpy() for k, t in v.items()}
+            np_in = {k: t.numpy() for k, t in inputs[mi].items()}
             st.stage(b, [_Obs(np_in["images"][i], np_in["state"][i], np_in["tokens"][i], np_in[NOISE][i])
                          for i in range(b)])
-            free_inputs.put((mi, slot))  # copied into this process's pinned staging: the slot is free
-            slot_held = False
             while not free[mi]:  # back-pressure: wait for the action process to release a group
                 free[mi].append(free_groups[mi].get())
             while True:  # collect any other released groups without waiting
@@ -256,13 +252,15 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, free_inputs, resul
             t_end = time.monotonic()
         except Exception as exc:
             log.exception("VLM batch failed")
-            if slot_held:
-                free_inputs.put((mi, slot))
             if g is not None:  # never sent to the action process: free again for the next batch
                 free[mi].appendleft(g)
             results.put(("error", seqs, f"inference failed: {type(exc).__name__}"))
-            continue
-        to_action.put((mi, g, seqs, admitted, t_end))
+        else:
+            to_action.put((mi, g, seqs, admitted, t_end))
+        # Ready for the next batch, which the front forms now from what is queued then, as a vLLM engine's scheduler
+        # forms each step's batch when the step is about to run. A batch formed while this one still ran would be
+        # formed early (smaller, and past shedding when it turns late) and wait a whole VLM run in its slot.
+        vlm_ready.put(mi)
 
 
 _POOLS = None
@@ -524,7 +522,7 @@ class ProcDisaggEngine(Engine):
         self._inflight_lock = threading.Lock()
         self._drained = threading.Condition(self._inflight_lock)
         self._seq = 0
-        self._free_inputs: list[deque[int]] = [deque(range(IN_SLOTS)) for _ in models]
+        self._vlm_ready = True  # the VLM process waits for a batch (the front forms one only then)
         self._procs: list = []
         self._fatal: str | None = None
         self._ready: set[str] = set()
@@ -552,10 +550,10 @@ class ProcDisaggEngine(Engine):
                 h1 = m.model.vlm_stage(*m.model.example_inputs(1, self.device))
             ring_specs = {k: ((groups * mb, *v.shape[1:]), v.dtype) for k, v in h1.items()}
             ring_specs[NOISE] = ((groups * mb, m.model.io.horizon, m.model.io.action_dim), torch.float32)
-            in_flat = [Pack.allocate(in_specs, torch.device("cpu")).flat.share_memory_() for _ in range(IN_SLOTS)]
+            in_flat = Pack.allocate(in_specs, torch.device("cpu")).flat.share_memory_()
             ring = Pack.allocate(ring_specs, self.device)
             plans.append(_ModelPlan(name, m.model, in_flat, in_specs, ring.flat, ring_specs, groups))
-            self._inputs.append([{k: t.numpy() for k, t in _views(f, in_specs).items()} for f in in_flat])
+            self._inputs.append({k: t.numpy() for k, t in _views(in_flat, in_specs).items()})
         self._plans = plans
         shared = _Shared(str(self.device), mb, self.running, self.cfg.seed, self.cfg.graphs, plans)
         if mode == "process":
@@ -569,11 +567,11 @@ class ProcDisaggEngine(Engine):
             start = lambda target, args, name: threading.Thread(target=target, args=args, name=name, daemon=True)  # noqa: E731
         self._to_vlm = Q()
         to_action = Q()
-        self._free_in_q = Q()
+        self._vlm_ready_q = Q()
         free_groups = [Q() for _ in plans]
         self._results = Q()
         self._procs = [
-            start(vlm_worker, (shared, self._to_vlm, to_action, free_groups, self._free_in_q, self._results),
+            start(vlm_worker, (shared, self._to_vlm, to_action, free_groups, self._vlm_ready_q, self._results),
                   "robion-procdisagg-vlm"),
             start(action_worker, (shared, to_action, free_groups, self._results), "robion-procdisagg-action"),
         ]
@@ -603,57 +601,51 @@ class ProcDisaggEngine(Engine):
 
     # ------------------------------------------------------------------ serving
 
-    def _collect_free_inputs(self, timeout: float | None = None) -> None:
-        block = timeout is not None
-        while True:
-            try:
-                mi, slot = self._free_in_q.get(timeout=timeout) if block else self._free_in_q.get_nowait()
-            except std_queue.Empty:
-                return
-            block = False
-            self._free_inputs[mi].append(slot)
+    def _collect_vlm_ready(self, timeout: float | None = None) -> None:
+        """Note the VLM process's word that it is ready for a batch; ``timeout``: wait that long for it."""
+        try:
+            self._vlm_ready_q.get(timeout=timeout) if timeout is not None else self._vlm_ready_q.get_nowait()
+        except std_queue.Empty:
+            return
+        self._vlm_ready = True
 
     def step(self) -> bool:
-        self._collect_free_inputs()
+        self._collect_vlm_ready()
         if self._fatal is not None:
             raise RuntimeError(self._fatal)
-        # Only dispatch when the model the policy would pick has a free input slot.
-        model, peek = self.queues.peek(self.cfg.max_batch)
-        if not peek:
-            model, batch, expired = self.queues.take(self.cfg.max_batch)  # sheds expired heads
-            self._report_expired(expired)
-            return bool(expired)
-        mi = self.names.index(model)
-        if not self._free_inputs[mi]:
+        if not self._vlm_ready:  # one batch at a time in the VLM process, formed when it is ready
             return False
-        model, batch, expired = self.queues.take(self.cfg.max_batch)
+        model, batch, expired = self.queues.take(self.cfg.max_batch)  # sheds expired heads
         self._report_expired(expired)
         if not batch:
             return bool(expired)
         mi = self.names.index(model)
-        while not self._free_inputs[mi]:  # the policy picked another model since the peek: wait for its slot
-            if self._fatal is not None:
-                self._fail_batch(batch)
-                raise RuntimeError(self._fatal)
-            self._collect_free_inputs(timeout=0.01)
-        slot = self._free_inputs[mi].popleft()
         admitted = time.monotonic()
-        v = self._inputs[mi][slot]
+        v = self._inputs[mi]
         seqs = []
-        with self._inflight_lock:
-            for i, r in enumerate(batch):
-                v["images"][i] = r.images
-                v["state"][i] = r.state
-                v["tokens"][i] = r.tokens
-                v[NOISE][i] = r.noise
-                self._seq += 1
-                self._inflight[self._seq] = r
-                seqs.append(self._seq)
-        self._to_vlm.put((mi, slot, seqs, admitted))
+        try:
+            with self._inflight_lock:
+                for i, r in enumerate(batch):
+                    v["images"][i] = r.images
+                    v["state"][i] = r.state
+                    v["tokens"][i] = r.tokens
+                    v[NOISE][i] = r.noise
+                    self._seq += 1
+                    self._inflight[self._seq] = r
+                    seqs.append(self._seq)
+        except Exception as exc:
+            # An observation that does not fit its slot (a caller past the transport's checks): the batch is
+            # answered, and the slot and the VLM's turn stay free, or the model would wait for them for good.
+            log.exception("procdisagg: could not stage a batch of %s", model)
+            with self._inflight_lock:
+                for seq in seqs:
+                    self._inflight.pop(seq, None)
+            self._emit([Result(r, error=(ErrorCode.INTERNAL, f"inference failed: {type(exc).__name__}"))
+                        for r in batch])
+            return True
+        self._vlm_ready = False
+        self._to_vlm.put((mi, seqs, admitted))
         return True
-
-    def _fail_batch(self, batch: list[Request]) -> None:
-        self._emit([Result(r, error=(ErrorCode.INTERNAL, "procdisagg stage failed")) for r in batch])
 
     def run(self, stop: threading.Event) -> None:
         self.queues.reopen()  # closed by the previous run's finish, if any
@@ -661,7 +653,7 @@ class ProcDisaggEngine(Engine):
             try:
                 if not self.step():
                     if self.queues.depths() and any(self.queues.depths().values()):
-                        self._collect_free_inputs(timeout=0.002)  # waiting for the VLM side
+                        self._collect_vlm_ready(timeout=0.002)  # waiting for the VLM side
                     else:
                         self.queues.wait(0.005)
             except Exception:
