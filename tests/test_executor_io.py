@@ -382,6 +382,73 @@ def test_an_executor_that_cannot_load_any_models_after_a_failed_reload_leaves(ha
     assert not h.thread.is_alive() and h.io.fatal.is_set()
 
 
+def _load_and_wait_registration(h: Harness, models: list[str], timeout_s: float = 30.0) -> dict:
+    """Send the control plane's ``load``; the executor's first registration after it (its outcome in ``load``)."""
+    h.control.send_multipart([b"ex0", control.pack("load", models=[asdict(h.cfg.model(m)) for m in models],
+                                                   load_id="L1")])
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        for msg in h.control_messages(0.05):
+            if msg.get("kind") == "register" and (msg.get("load") or {}).get("id") == "L1":
+                return msg
+    raise AssertionError(f"the executor did not register after the load of {models}")
+
+
+def test_a_failed_reload_frees_the_failed_engine_and_models_before_falling_back(harness, monkeypatch):
+    """A reload that fails (most often: the device ran out of memory building the new models or capturing their
+    graphs) falls back to the previous models. The fallback ran inside the except block, whose traceback held the
+    failed engine and the new models' weights, so on a full device the fallback could run out of memory too, and the
+    executor left instead of going back to its previous models as docs/operations.md says."""
+    import gc
+    import weakref
+
+    from services.executor.engine import MonolithicEngine
+
+    h = harness(control_plane=True,
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0})
+    real = MonolithicEngine.prepare
+    seen: dict = {}
+
+    def prepare(self):
+        if "toy-b" in self.models:  # the new set's engine fails after allocating
+            self.buffers = torch.zeros(1 << 20)
+            seen["engine"], seen["model"] = weakref.ref(self), weakref.ref(self.models["toy-b"].model)
+            raise RuntimeError("CUDA out of memory (simulated)")
+        if seen:  # the fallback's engine: is the failed attempt's memory free by now?
+            gc.collect()
+            seen["alive during fallback"] = (seen["engine"]() is not None, seen["model"]() is not None)
+        real(self)
+
+    monkeypatch.setattr(MonolithicEngine, "prepare", prepare)
+    msg = _load_and_wait_registration(h, ["toy-a", "toy-b"])
+    assert msg["load"]["ok"] is False and "CUDA out of memory (simulated)" in msg["load"]["error"]
+    assert sorted(msg["models"]) == ["toy-a"]
+    assert seen["alive during fallback"] == (False, False)
+    h.send(h.request("after"))
+    h.wait_replies(["after"])
+    assert getattr(h.replies["after"], "actions", None) is not None
+
+
+def test_replies_right_after_a_reload_are_judged_by_the_new_deadlines(harness):
+    """The metrics learnt a reload's model set at the next heartbeat, but the registration before it lets traffic in:
+    replies in between were judged by the old deadline, or by none (a model just added: every reply counted met).
+    toy-b's deadline here is a microsecond, so each of its replies is a miss."""
+    models = [{"name": "toy-a", "arch": "toy", "size": "tiny", "seed": 0, "slo_ms": 500},
+              {"name": "toy-b", "arch": "toy", "size": "tiny", "seed": 1, "slo_ms": 0.001}]
+    h = harness(model_configs=models, engine={"kind": "monolithic", "max_batch": 2, "shed_expired": False},
+                control_plane=True,
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 30, "metrics_port": 0})
+    _load_and_wait_registration(h, ["toy-a", "toy-b"])
+    ids = [f"b{i}" for i in range(4)]
+    for rid in ids:
+        h.send(h.request(rid, "toy-b"))
+    h.wait_replies(ids)
+    assert all(getattr(h.replies[rid], "actions", None) is not None for rid in ids)
+    assert _sample(h, "robion_slo_met_total", model="toy-b") == 0
+    assert _sample(h, "robion_slo_missed_total", model="toy-b") == 4
+    assert h.metrics.registry.get_sample_value("robion_slo_attainment_ratio", {"model": "toy-b"}) == 0.0
+
+
 @pytest.mark.parametrize("engine", [{"kind": "procdisagg", "procdisagg_workers": "thread"},
                                     {"kind": "interdisagg", "vlm_devices": "cpu", "action_devices": "cpu"}],
                          ids=["procdisagg", "interdisagg"])

@@ -8,6 +8,7 @@ registers again. Other executors keep serving meanwhile.
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 import time
@@ -43,6 +44,17 @@ class ServedInput:
 class Hosted:
     models: dict[str, ServedModel]
     inputs: dict[str, ServedInput]
+
+
+def free_memory(device: torch.device) -> None:
+    """Collect what nothing references any more (cycles included) and return the device's cached blocks, so a build
+    that follows finds the memory free (best effort)."""
+    gc.collect()
+    if device.type == "cuda":
+        try:
+            torch.cuda.empty_cache()
+        except Exception:
+            log.debug("could not empty the CUDA cache", exc_info=True)
 
 
 def _weights_key(mc: ModelConfig) -> tuple:

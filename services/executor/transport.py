@@ -11,13 +11,14 @@ import logging
 import queue
 import threading
 import time
+import traceback
 import uuid
 from collections import deque
 
 import numpy as np
 import zmq
 
-from services.executor.hosting import EngineSlot, Hosted, ModelStore, ServedInput
+from services.executor.hosting import EngineSlot, Hosted, ModelStore, ServedInput, free_memory
 from services.executor.limits import measure_limits
 from services.executor.scheduler import Request, Result
 from shared import control
@@ -300,6 +301,9 @@ class ExecutorIO:
                     log.error("the control plane refused our message: %s (%s)", msg.get("message"), msg.get("code"))
         if self._reregister.is_set() and not self._leaving:
             self._reregister.clear()
+            # The metrics judge replies by the new model set's deadlines before the registration lets traffic in,
+            # not from the next heartbeat on: a reply in between was judged by the old deadline, or by none.
+            self.metrics.serve_models({n: s.slo_s for n, s in self.served.items()})
             self.register()
         now = time.monotonic()
         if now - self._last_beat >= self.cfg.control.heartbeat_s:
@@ -409,13 +413,23 @@ class ExecutorIO:
         self.slot.stop()  # anything still held is answered UNAVAILABLE by the engine's finish
         # The I/O thread's view (self.served) changes while no engine runs, so a request in
         # between meets no engine (UNAVAILABLE) rather than a new engine without its model.
+        failure = None
         try:
             hosted = self.store.load(configs)
             self.served = hosted.inputs
             took = self.slot.start(hosted)
         except Exception as exc:
-            log.exception("loading %s failed; keeping the previous models", names)
-            outcome = {"id": load_id, "ok": False, "error": f"{type(exc).__name__}: {exc}"[:500]}
+            # The traceback as text: a log record holding the exception (a handler that keeps records) would keep
+            # its frames, and with them what the failed attempt allocated.
+            log.error("loading %s failed; keeping the previous models\n%s", names, traceback.format_exc())
+            failure = f"{type(exc).__name__}: {exc}"[:500]
+        if failure is not None:
+            # Out of the except block: its traceback held the failed engine (buffers, graph pools) and the new
+            # models' weights through the fallback, which on a device that ran out of memory could then run out too.
+            outcome = {"id": load_id, "ok": False, "error": failure}
+            hosted = None
+            self.served = {}
+            free_memory(self.store.device)
             try:
                 hosted = self.store.load(previous)
                 self.served = hosted.inputs
