@@ -51,7 +51,7 @@ class RouterMetrics:
                                   "with an error, the router's own answers included", ["model"], registry=r)
         self.in_flight = Gauge("robion_router_in_flight_requests", "Requests forwarded and not yet answered", registry=r)
         self.table_version = Gauge("robion_router_routing_table_version", "Version of the routing table in use", registry=r)
-        self.executors = Gauge("robion_router_executors", "Executors in the routing table", registry=r)
+        self.executors = Gauge("robion_router_executors", "Executors the routing table routes requests to", registry=r)
 
     def serve_models(self, models) -> None:
         """Give each served model its SLO series at 0 (a ratio of two counters is empty while one has no series)."""

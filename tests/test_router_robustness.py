@@ -457,3 +457,25 @@ def test_the_routers_slo_counters_count_every_answer_its_own_included(tmp_path):
         assert isinstance(ask(robot, infer_frames("ok")), InferReply)
         assert isinstance(ask(robot, infer_frames("bad", model="nope")), ErrorReply)  # not served: no series
         assert (slo("met"), slo("missed"), slo("met", "nope")) == (1.0, 1.0, None)
+
+
+def test_the_routers_own_refusals_of_a_served_models_requests_count_under_it(tmp_path):
+    """Too many frames, a message over the size limit and an unusable id were counted under model "" and missing
+    from the served model's SLO series (docs/operations.md: "" is for a model that is not served), so a fleet sending
+    oversized images showed no SLO misses. The executor counts such refusals under the model; so does the router."""
+    with RouterThread(tmp_path, one_executor_table(), max_message_bytes=100_000) as rt:
+        reg = rt.router.metrics.registry
+        robot = rt.robot(b"arm")
+        refused = [infer_frames("many") + [b"x", b"y"],
+                   infer_frames("big")[:1] + [b"\0" * 60_000] * 2,
+                   infer_frames(""),
+                   infer_frames("bad-v", v=99)]
+        for frames in refused:
+            assert isinstance(ask(robot, frames), ErrorReply)
+        assert reg.get_sample_value("robion_router_slo_missed_total", {"model": "toy-a"}) == len(refused)
+        assert reg.get_sample_value("robion_router_requests_total", {"model": "", "status": "bad_request"}) is None
+        assert reg.get_sample_value("robion_router_requests_total", {"model": "toy-a", "status": "too_large"}) == 1
+        # A model the cluster does not serve still gets no series of its own.
+        assert isinstance(ask(robot, infer_frames("nope", model="nope")[:1] + [b"\0" * 60_000] * 2), ErrorReply)
+        assert reg.get_sample_value("robion_router_requests_total", {"model": "", "status": "too_large"}) == 1
+        assert reg.get_sample_value("robion_router_slo_missed_total", {"model": "nope"}) is None

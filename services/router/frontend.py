@@ -28,6 +28,11 @@ log = logging.getLogger("robion.router")
 MAX_IN_FLIGHT = 65536
 MAX_EXECUTOR_INSTANCES = 4096  # executor names whose process token is remembered (see _executor_hello)
 TABLE_POLL_S = 0.1
+# One poll is outstanding at a time; an unanswered one is sent again after this long (a control plane that restarted
+# never answers the last poll to its predecessor). Polls sent every TABLE_POLL_S whatever came back piled up while the
+# plane was busy solving (seconds), and it then answered each with the whole new table, all of which the router decoded
+# while robots' requests waited.
+TABLE_POLL_RETRY_S = 1.0
 PIN_SWEEP_S = 5.0  # how often silent robots' pins are released (routing.PIN_IDLE_S)
 SHUTDOWN_LINGER_MS = 1000  # at shutdown, how long the last answers may take to leave
 WARN_EVERY_S = 5.0  # refusals a peer can trigger at will are logged at most this often, with a count
@@ -105,6 +110,7 @@ class Router:
         self.ctl_events = self.ctl.get_monitor_socket(zmq.EVENT_CONNECTED)
         connect(self.ctl, dial_address(cfg.control.bind, cfg.control.connect))
         self._last_table_poll = 0.0
+        self._poll_outstanding = False  # a table_get sent and not answered yet
         self._last_sweep = 0.0
         self._last_pin_sweep = time.monotonic()
         self._too_many_frames = RateLimitedWarning()
@@ -126,7 +132,8 @@ class Router:
             poller.register(s, zmq.POLLIN)
         while not stop.is_set():
             now = time.monotonic()
-            if now - self._last_table_poll >= TABLE_POLL_S:
+            since = now - self._last_table_poll
+            if since >= TABLE_POLL_RETRY_S or (since >= TABLE_POLL_S and not self._poll_outstanding):
                 self._last_table_poll = now
                 try:
                     # A kept table of a plane that restarted is no version of the new plane's: report none (-1),
@@ -138,6 +145,7 @@ class Router:
                     else:
                         ask = {"version": self.routing.table.version}
                     self.ctl.send(control.pack("table_get", role="router", **ask), zmq.NOBLOCK)
+                    self._poll_outstanding = True
                 except zmq.Again:
                     pass  # control plane unreachable or not reading: the next poll asks again
             if now - self._last_sweep >= 0.1:
@@ -227,13 +235,16 @@ class Router:
         except ProtocolError as exc:
             return self._reply_error(robot, "", exc.code, exc.message)
         rid = header_id(header)  # "" when unusable: the refusal below still reaches the robot
+        kind = header.get("kind")
+        model = header.get("model")
+        # A refused request for a served model counts under it in the SLO series, as the executor's refusals do
+        # (_reply_error keeps names it does not serve out of the labels).
+        label = model if kind == "infer" and isinstance(model, str) else ""
         try:
             check_header(header)  # v and id, for every kind
         except ProtocolError as exc:
-            return self._reply_error(robot, rid, exc.code, exc.message)
-        kind = header.get("kind")
-        model = header.get("model")
-        info = self.routing.table.models.get(model) if kind == "infer" and isinstance(model, str) else None
+            return self._reply_error(robot, rid, exc.code, exc.message, label)
+        info = self.routing.table.models.get(model) if label else None
         most = max_frames(kind, len(info.cameras) if info is not None else None)
         if len(body) > most:
             # libzmq cannot cap frames per message (see __init__), so this is where a message
@@ -241,11 +252,11 @@ class Router:
             self._too_many_frames.warn("refused a %s message of %d frames from robot %r (at most %d)",
                                        shown(kind), len(body), robot, most)
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST,
-                                     f"message has {len(body)} frames; a {shown(kind)} message has at most {most}")
+                                     f"message has {len(body)} frames; a {shown(kind)} message has at most {most}", label)
         size = message_bytes([f.buffer for f in body])
         if size > self.cfg.router.max_message_bytes:
             return self._reply_error(robot, rid, ErrorCode.TOO_LARGE,
-                                     f"message is {size} bytes; the limit is {self.cfg.router.max_message_bytes}")
+                                     f"message is {size} bytes; the limit is {self.cfg.router.max_message_bytes}", label)
         if kind == "hello":
             table = self.routing.table
             self.frontend.send_multipart([robot, *encode(Metadata(id=rid, models=table.models))], copy=False)
@@ -258,7 +269,7 @@ class Router:
         if not isinstance(model, str):
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, "model: expected str")
         if rid == "":
-            return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, "id: expected a non-empty str or int")
+            return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST, "id: expected a non-empty str or int", model)
         if not self._serves(model):
             return self._reply_error(robot, rid, ErrorCode.UNKNOWN_MODEL, f"model {model!r} is not served")
         key = flight_key(robot, rid)
@@ -399,6 +410,7 @@ class Router:
     def _from_control(self, frames: list[zmq.Frame]) -> None:
         # The control plane answers each poll (ten a second) the same way until it is fixed, so what
         # cannot be read is reported rate-limited and without a traceback, and the current table kept.
+        self._poll_outstanding = False  # the router sends the plane nothing but polls: this answers the last one
         try:
             msg = control.unpack(frames[-1].buffer)
         except ProtocolError as exc:
