@@ -61,7 +61,7 @@ log = logging.getLogger(__name__)
 
 # How long before a VLM batch is expected to end the VLM process asks the front for the next one, so the next batch is
 # there when this one ends: about the round trip of a batch through the front's queue and its staging. robion forms its
-# next lockstep about as early (launch-ahead). Expected from the median of the last runs of that model and batch size.
+# next lockstep about as early (launch-ahead). Expected from the mean of the last runs of that model and batch size.
 READY_LEAD_S = 1e-3
 
 # ----------------------------------------------------------------------------- telemetry
@@ -253,15 +253,10 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, vlm_ready, results
                     done_ev.record(stream)
                 past = took.setdefault((mi, b), deque(maxlen=8))
                 if past:
-                    # Watched, not slept through: a batch that ends before its estimate is handed on at once (a
-                    # blind sleep held it, and the time it measured then raised the next estimates in turn).
-                    ask_at = t_launch + float(np.median(past)) - READY_LEAD_S
-                    while not done_ev.query():
-                        if time.perf_counter() >= ask_at:  # still running: the next batch is formed as it ends
-                            vlm_ready.put(mi)
-                            asked = True
-                            break
-                        time.sleep(50e-6)
+                    time.sleep(max(0.0, t_launch + sum(past) / len(past) - READY_LEAD_S - time.perf_counter()))
+                    if not done_ev.query():  # still running: the next batch is formed while it ends
+                        vlm_ready.put(mi)
+                        asked = True
                 done_ev.synchronize()
                 past.append(time.perf_counter() - t_launch)
             else:
