@@ -59,11 +59,6 @@ log = logging.getLogger(__name__)
 
 
 
-# How long before a VLM batch is expected to end the VLM process asks the front for the next one, so the next batch is
-# there when this one ends: about the round trip of a batch through the front's queue and its staging. robion forms its
-# next lockstep about as early (launch-ahead). Expected from the mean of the last runs of that model and batch size.
-READY_LEAD_S = 1e-3
-
 # ----------------------------------------------------------------------------- telemetry
 
 @dataclass
@@ -218,7 +213,6 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, vlm_ready, results
     if cuda:
         torch.cuda.synchronize(device)
     done_ev = torch.cuda.Event() if cuda else None
-    took: dict[tuple[int, int], deque[float]] = {}  # (model, batch) -> host seconds of its last runs, launch to end
     results.put(("ready", "vlm"))
     while True:
         msg = inbox.get()
@@ -229,7 +223,6 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, vlm_ready, results
         b = len(seqs)
         p, st = shared.plans[mi], stages[mi]
         g = None  # given back on failure: kept, it would stall this model for good
-        asked = False  # whether the front was told to form the next batch already
         try:
             np_in = {k: t.numpy() for k, t in inputs[mi].items()}
             st.stage(b, [_Obs(np_in["images"][i], np_in["state"][i], np_in["tokens"][i], np_in[NOISE][i])
@@ -244,21 +237,13 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, vlm_ready, results
             g = free[mi].popleft()
             row = g * shared.max_batch
             if cuda:
-                t_launch = time.perf_counter()
                 with torch.cuda.stream(stream):
                     st.vlm(b, None)
                     out = st.vlm_out[b].views
                     for k, t in ring[mi].items():
                         t[row:row + b].copy_(out[k])
                     done_ev.record(stream)
-                past = took.setdefault((mi, b), deque(maxlen=8))
-                if past:
-                    time.sleep(max(0.0, t_launch + sum(past) / len(past) - READY_LEAD_S - time.perf_counter()))
-                    if not done_ev.query():  # still running: the next batch is formed while it ends
-                        vlm_ready.put(mi)
-                        asked = True
                 done_ev.synchronize()
-                past.append(time.perf_counter() - t_launch)
             else:
                 st.vlm(b, None)
                 out = st.vlm_out[b].views
@@ -274,10 +259,8 @@ def _vlm_loop(shared: _Shared, inbox, to_action, free_groups, vlm_ready, results
             to_action.put((mi, g, seqs, admitted, t_end))
         # Ready for the next batch, which the front forms now from what is queued then, as a vLLM engine's scheduler
         # forms each step's batch when the step is about to run. A batch formed while this one still ran would be
-        # formed early (smaller, and past shedding when it turns late) and wait a whole VLM run in its slot; only
-        # READY_LEAD_S early, it hides the round trip to the front.
-        if not asked:
-            vlm_ready.put(mi)
+        # formed early (smaller, and past shedding when it turns late) and wait a whole VLM run in its slot.
+        vlm_ready.put(mi)
 
 
 _POOLS = None
