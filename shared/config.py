@@ -100,7 +100,9 @@ def _seed(v: Any) -> bool:
     return 0 <= v < 2 ** 63
 
 
-_ADDRESS_RE = re.compile(r"(tcp://(\*|\[[0-9A-Fa-f:.]+\]|[^:/\[\]\s]+):(\d+)|ipc://\S+|inproc://\S+)")
+# No inproc://: it joins sockets of one process, and the router, control plane, executors and fleet are processes of
+# their own (a cluster configured with it never became ready, and said nothing of why).
+_ADDRESS_RE = re.compile(r"(tcp://(\*|\[[0-9A-Fa-f:.]+\]|[^:/\[\]\s]+):(\d+)|ipc://\S+)")
 
 
 # An executor's memory_gb at most (a petabyte): 1e300 overflowed the placement's byte count (a traceback).
@@ -117,8 +119,8 @@ def solve_time_limit(v: Any) -> bool:
 
 
 def valid_address(v: Any) -> bool:
-    """A ZeroMQ endpoint the services can bind or dial: tcp://HOST:PORT (HOST may be * in a bind),
-    ipc://PATH or inproc://NAME. zmq refuses anything else with a bare "Invalid argument" at start-up."""
+    """A ZeroMQ endpoint the services can bind or dial: tcp://HOST:PORT (HOST may be * in a bind) or ipc://PATH.
+    zmq refuses anything else with a bare "Invalid argument" at start-up."""
     m = _ADDRESS_RE.fullmatch(v)
     return bool(m) and (m.group(3) is None or 1 <= int(m.group(3)) <= 65535)
 
@@ -141,9 +143,9 @@ def _check(pred, text: str) -> dict[str, Any]:
     return {"check": (pred, text)}
 
 
-_ADDRESS = _check(valid_address, "expected an address like tcp://HOST:PORT, ipc://PATH or inproc://NAME")
-_DIAL = _check(valid_dial_address, "expected an address to dial like tcp://HOST:PORT (no * host), ipc://PATH or "
-                                   "inproc://NAME")
+_ADDRESS = _check(valid_address, "expected an address like tcp://HOST:PORT or ipc://PATH (not inproc://: the services "
+                                 "are separate processes)")
+_DIAL = _check(valid_dial_address, "expected an address to dial like tcp://HOST:PORT (no * host) or ipc://PATH")
 _SEED = _check(_seed, "expected a non-negative integer below 2**63")
 # Most executors one cluster config describes: the traffic controller plans at most that many GPUs
 # (services/controlplane/solver.py, MAX_GPUS), and `gpus: N` must not build a list of any size first.

@@ -27,6 +27,10 @@ def python_argv(service: dict) -> list[str]:
     cmd = service["command"]
     if cmd.startswith("sh -c "):
         cmd = shlex.split(cmd)[2]
+        # The image's sh (dash) does not exec its last command: it stays PID 1, which ignores docker's SIGTERM, so
+        # the service never drained and was killed at the end of its stop grace. The command must exec python.
+        assert cmd.startswith("exec python "), f"{service['command']!r}: a shell-wrapped command must exec python"
+        cmd = cmd[len("exec "):]
         env = {"HOSTNAME": "replica-1", **service.get("environment", {})}
         for key, value in env.items():
             cmd = cmd.replace(f"$${{{key}}}", value)

@@ -16,11 +16,23 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.mark.parametrize("address", ["tcp://127.0.0.1:5555", "tcp://*:5555", "tcp://0.0.0.0:1", "tcp://router:65535",
-                                     "tcp://[::1]:5555", "ipc:///tmp/robion.sock", "inproc://router"])
+                                     "tcp://[::1]:5555", "ipc:///tmp/robion.sock"])
 def test_addresses_zmq_takes_still_load(address):
     data = base()
     data["router"] = {"bind": address}
     assert config_from_dict(data).router.bind == address
+
+
+@pytest.mark.parametrize("key", [("router", "bind"), ("router", "backend"), ("control", "bind"), ("control", "connect")])
+def test_an_inproc_address_is_refused_naming_the_key(key):
+    """inproc:// joins sockets of one process; the services are processes of their own. A cluster configured with it
+    passed the checks and then never became ready (`robion up` waited out its timeout, 300 s by default)."""
+    data = base()
+    data[key[0]] = {key[1]: "inproc://router"}
+    with pytest.raises(ConfigError) as e:
+        config_from_dict(data)
+    assert str(e.value).startswith(f"{key[0]}.{key[1]}: expected an address"), str(e.value)
+    assert "not inproc://" in str(e.value) or "ipc://PATH" in str(e.value), str(e.value)
 
 
 def test_a_model_arch_that_is_not_a_string_is_named_in_placement_groups():
