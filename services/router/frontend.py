@@ -182,6 +182,7 @@ class Router:
     def close(self) -> None:
         # Every request gets exactly one answer: those still in flight would otherwise be lost with the
         # router and their robots would each wait out their own timeout before retrying.
+        self._refuse_unread()
         for (robot, _, rid), f in list(self.in_flight.items()):
             self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, "the router is shutting down", f.model)
         self.in_flight.clear()
@@ -196,6 +197,26 @@ class Router:
         self.ctl.close(linger=0)
         for s in (self.backend, self.frontend):
             s.close(linger=SHUTDOWN_LINGER_MS)
+
+    def _refuse_unread(self) -> None:
+        """Requests already in the robots' socket, unread, when the router stops: answered UNAVAILABLE ("retry"),
+        as those in flight are, rather than left to each robot's timeout."""
+        refused = 0
+        for _ in range(MAX_IN_FLIGHT):  # bounded: robots may keep sending while this runs
+            try:
+                frames = self.frontend.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                break
+            try:
+                header = unpack_header(frames[1].buffer) if len(frames) > 1 else {}
+                model = header.get("model") if isinstance(header, dict) else None
+                self._reply_error(frames[0].bytes, header_id(header), ErrorCode.UNAVAILABLE,
+                                  "the router is shutting down", model if isinstance(model, str) else "")
+                refused += 1
+            except Exception:  # unreadable: no id to answer to
+                log.debug("could not answer an unread message at shutdown", exc_info=True)
+        if refused:
+            log.info("answered %d requests not read yet UNAVAILABLE: the router is shutting down", refused)
 
     # ------------------------------------------------------------------ robots
 
