@@ -196,7 +196,8 @@ class Rollout:
             # models the desired config still defines: dropping a retired model loses no host it needs.
             serving = _serving(state)
             only = _only_host(serving, step.executor, serving.get(step.executor, set()))
-            lost = sorted((only & {m.name for m in state.cfg.models}) - {m.name for m in step.models} - set(step.unhosted))
+            defined = {m.name for m in state.cfg.models}
+            lost = sorted((only & defined) - {m.name for m in step.models} - set(step.unhosted))
             if lost:
                 # The plan counted on another executor serving these by now; its step failed (or it left). Dropping
                 # them here would leave them with no host at all, not just for this reload.
@@ -278,5 +279,5 @@ class Rollout:
         # Otherwise the same process re-registering while it reloads (it lost the control plane): keep waiting.
 
     def status(self) -> dict:
-        return {"id": self.id, "pending": [s.executor for s in self.pending], "done": self.done_steps, "failed": self.failed,
-                "current": self.current.executor if self.current and self.current.started else None}
+        return {"id": self.id, "pending": [s.executor for s in self.pending], "done": self.done_steps,
+                "failed": self.failed, "current": self.current.executor if self.current and self.current.started else None}

@@ -128,7 +128,7 @@ class ClusterState:
         stale = sorted(m for m, c in limits.items() if valid_limit(c) and not self._current(m, settings))
         if stale:
             log.warning("executor %s reported robot limits for settings other than the desired ones, ignored: %s",
-                     name, stale)
+                        name, stale)
         measured_before = dict(self.measured_limits)
         self.measured_limits.update({m: c for m, c in limits.items() if valid_limit(c) and m not in stale})
         self.described.update(models)

@@ -273,11 +273,13 @@ class Router:
             self._too_many_frames.warn("refused a %s message of %d frames from robot %r (at most %d)",
                                        shown(kind), len(body), robot, most)
             return self._reply_error(robot, rid, ErrorCode.BAD_REQUEST,
-                                     f"message has {len(body)} frames; a {shown(kind)} message has at most {most}", label)
+                                     f"message has {len(body)} frames; a {shown(kind)} message has at most {most}",
+                                     label)
         size = message_bytes([f.buffer for f in body])
         if size > self.cfg.router.max_message_bytes:
             return self._reply_error(robot, rid, ErrorCode.TOO_LARGE,
-                                     f"message is {size} bytes; the limit is {self.cfg.router.max_message_bytes}", label)
+                                     f"message is {size} bytes; the limit is {self.cfg.router.max_message_bytes}",
+                                     label)
         if kind == "hello":
             table = self.routing.table
             self.frontend.send_multipart([robot, *encode(Metadata(id=rid, models=table.models))], copy=False)

@@ -58,7 +58,6 @@ from shared.protocol import ErrorCode
 log = logging.getLogger(__name__)
 
 
-
 # ----------------------------------------------------------------------------- telemetry
 
 @dataclass
