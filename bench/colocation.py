@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import sys
 import time
@@ -22,6 +23,9 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # sibling bench modules (capacity)
+
+from shared.config import ConfigError, engine_config  # noqa: E402
+from shared.files import unwritable  # noqa: E402
 
 PAPER_DEADLINES_MS = {"pi0": 156.0, "xr0": 117.0, "smolvla": 50.0, "groot_n15": 53.0}
 
@@ -85,10 +89,12 @@ def run(args) -> dict:
         hosts = {label: EngineHost(engine_factory(e["kind"], served, device, **common,
                                                   **{k: v for k, v in e.items() if k != "kind"}), label=label)
                  for label, e in engines.items()}
-        for total in args.robots:
+        for i, total in enumerate(args.robots):
             counts = split(total, [m[3] for m in models])
             workload = [RobotGroup(m[0], n, args.hz) for m, n in zip(models, counts) if n > 0]
-            labels = list(hosts) if total % 2 == 0 else list(reversed(hosts))  # alternate who runs first
+            # Alternate who runs first from one count to the next (by the count's parity it never did: every
+            # documented sweep is of even counts).
+            labels = list(hosts) if i % 2 == 0 else list(reversed(hosts))
             for label in labels:
                 res = simulate(hosts[label], workload, sim)
                 rows.append({"scenario": name, "engine": label, "robots": total, "counts": counts,
@@ -157,6 +163,18 @@ def main(argv: list[str] | None = None) -> int:
         args.robots = []
     if not args.robots or min(args.robots) < 1:  # a 0-robot row's NaN attainment turned every mean into null
         p.error("--robots: expected comma-separated robot counts of at least 1")
+    # Checked before any model is built: a max_batch of 0 ran to 0% attainment, 3 ran although a config refuses it.
+    try:
+        engine_config({"kind": "robion", "max_batch": args.max_batch})
+    except ConfigError as exc:
+        p.error(f"--max-batch: {exc}")
+    for name, value in (("--hz", args.hz), ("--duration", args.duration), ("--deadline", args.deadline)):
+        if not (math.isfinite(value) and value > 0):
+            p.error(f"{name}: expected a positive number, got {value}")
+    if args.epochs < 1:
+        p.error(f"--epochs: expected at least 1, got {args.epochs}")
+    if args.out and (why := unwritable(args.out)):  # before the run, not after it
+        p.error(f"--out: {why}")
     t0 = time.monotonic()
     result = run(args)
     result["meta"]["wall_s"] = round(time.monotonic() - t0, 1)

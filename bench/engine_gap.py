@@ -34,8 +34,12 @@ from services.executor.engine import ServedModel  # noqa: E402
 from services.executor.lockstep import LockstepEngine  # noqa: E402
 from services.executor.scheduler import Request  # noqa: E402
 from services.executor.telemetry import summarize  # noqa: E402
-from shared.config import EngineConfig  # noqa: E402
+from shared.config import ConfigError, EngineConfig, engine_config  # noqa: E402
+from shared.files import unwritable  # noqa: E402
 from shared.models import build_model  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from capacity import meta  # noqa: E402
 
 
 def payloads(model, n: int, seed: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -66,6 +70,25 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=0.0,
                     help="open-loop Poisson arrivals, requests/s per model (0: keep --depth requests queued)")
     args = ap.parse_args()
+    # Checked before any model is built: a bad value used to fail after the warm-up, or run on to no locksteps.
+    if not args.seconds > 0:
+        ap.error(f"--seconds: expected a positive number, got {args.seconds}")
+    if not args.rate >= 0:
+        ap.error(f"--rate: expected 0 or a positive rate, got {args.rate}")
+    if args.depth < 1:
+        ap.error(f"--depth: expected at least 1, got {args.depth}")
+    try:
+        engine_config({"kind": "robion", "max_batch": args.max_batch, "sm_policy": args.sm_policy,
+                       "static_sms": args.static_sms})
+    except ConfigError as exc:
+        ap.error(f"--max-batch, --sm-policy or --static-sms: {exc}")
+    for variant in args.ahead.split(","):
+        try:
+            variant.strip() in ("on", "off") or float(variant)
+        except ValueError:
+            ap.error(f"--ahead: expected off, on or a slack in us, got {variant.strip()!r}")
+    if args.out and (why := unwritable(args.out)):
+        ap.error(f"--out: {why}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for mod in args.imports:
         importlib.import_module(mod)
@@ -83,7 +106,7 @@ def main() -> None:
             torch.cuda.empty_cache()
     out = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
            "torch": torch.__version__, "models": args.models, "max_batch": args.max_batch,
-           "sm_policy": args.sm_policy, "rate": args.rate, "runs": runs}
+           "sm_policy": args.sm_policy, "rate": args.rate, "runs": runs, "meta": meta(str(device))}
     if args.out:
         with open(args.out, "w") as f:
             json.dump(out, f, indent=1)
@@ -123,38 +146,43 @@ def measure(args, models: dict, device: torch.device, variant: str) -> dict:
     next_arrival = {name: time.monotonic() for name in models}
 
     stop = threading.Event()
-    loop = threading.Thread(target=engine.run, args=(stop,))
+    # A daemon, and stopped whatever happens below: a failure in the load loop left the engine's thread running, and
+    # the process waiting on it for good.
+    loop = threading.Thread(target=engine.run, args=(stop,), daemon=True)
     loop.start()
     sent = 0
     warm_end = time.monotonic() + 1.0
     end = warm_end + args.seconds
+    answered0, t_meas = answered[0], warm_end
     cleared = False
-    while time.monotonic() < end:
-        if not cleared and time.monotonic() >= warm_end:
-            engine.telemetry.clear()
-            answered0, cleared, t_meas = answered[0], True, time.monotonic()
-        now = time.monotonic()
-        if args.rate:
-            due = {}
-            for name in models:
-                while next_arrival[name] <= now:
-                    due[name] = due.get(name, 0) + 1
-                    next_arrival[name] += rng.exponential(1.0 / args.rate)
-        else:
-            due = {name: args.depth - depth for name, depth in engine.queues.depths().items()}
-        for name, n in due.items():
-            for _ in range(n):
-                img, state, tok = pools[name][sent % 16]
-                now = time.monotonic()
-                engine.submit(Request(id=str(sent), robot="bench", model=name, images=img, state=state, tokens=tok,
-                                      arrival=now, deadline=now + 60))
-                sent += 1
-        time.sleep(0.0002)
-    records = engine.telemetry.records()
-    served_n = answered[0] - answered0
-    elapsed = time.monotonic() - t_meas
-    stop.set()
-    loop.join(60)
+    try:
+        while time.monotonic() < end:
+            if not cleared and time.monotonic() >= warm_end:
+                engine.telemetry.clear()
+                answered0, cleared, t_meas = answered[0], True, time.monotonic()
+            now = time.monotonic()
+            if args.rate:
+                due = {}
+                for name in models:
+                    while next_arrival[name] <= now:
+                        due[name] = due.get(name, 0) + 1
+                        next_arrival[name] += rng.exponential(1.0 / args.rate)
+            else:
+                due = {name: args.depth - depth for name, depth in engine.queues.depths().items()}
+            for name, n in due.items():
+                for _ in range(n):
+                    img, state, tok = pools[name][sent % 16]
+                    now = time.monotonic()
+                    engine.submit(Request(id=str(sent), robot="bench", model=name, images=img, state=state,
+                                          tokens=tok, arrival=now, deadline=now + 60))
+                    sent += 1
+            time.sleep(0.0002)
+        records = engine.telemetry.records()
+        served_n = answered[0] - answered0
+        elapsed = time.monotonic() - t_meas
+    finally:
+        stop.set()
+        loop.join(60)
 
     summary = summarize(records)
     by_pair: dict[str, list[float]] = defaultdict(list)

@@ -32,11 +32,11 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from capacity import _point_dict, meta  # noqa: E402
+from capacity import _point_dict, bad_arguments, meta, unknown_models  # noqa: E402
 
 from services.executor.simulation import (PAPER_DEADLINES_MS, EngineHost, SimConfig, _json_safe,  # noqa: E402
                                           compare_capacity, engine_factory, served_models)
-from shared.config import parse_devices  # noqa: E402
+from shared.config import ConfigError, engine_config, parse_devices  # noqa: E402
 from shared.files import write_atomic  # noqa: E402
 
 SCHEMA = "robion.interdisagg/1"
@@ -104,6 +104,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--log-level", default="WARNING")
     args = p.parse_args(argv)
+    # The measurement's own arguments, checked as bench/capacity.py checks them, before any model is built (a bad
+    # one was a traceback, or a capacity of 0 in every row with exit 0).
+    try:
+        robots = [int(x) for x in args.sweep.split(",") if x.strip()] if args.sweep else None
+    except ValueError:
+        p.error(f"--sweep: expected comma-separated robot counts, got {args.sweep!r}")
+    why = bad_arguments(args, robots) or unknown_models({args.arch: args.arch}, args.size)
+    if why:
+        p.error(why)
+    try:
+        engine_config({"kind": "interdisagg", "max_batch": args.max_batch, "handoff_slots": args.handoff_slots,
+                       "vlm_devices": "cpu", "action_devices": "cpu"})
+        if not args.no_intra:
+            engine_config({"kind": args.intra_engine, "max_batch": args.max_batch})
+    except ConfigError as exc:
+        p.error(f"--max-batch, --handoff-slots or --intra-engine: {exc}")
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
 
     try:

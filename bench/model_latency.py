@@ -25,6 +25,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from bench.experiments.timing import replay_pair_ms  # noqa: E402
 from shared.models import build_model  # noqa: E402
+from shared.files import unwritable  # noqa: E402
 from shared.models.registry import build_meta  # noqa: E402
 
 TARGETS_MS = {"pi0": 12.0, "groot_n15": 10.0, "xr0": 12.0, "smolvla": 5.0}  # H100, batch 1, VLM + action
@@ -105,9 +106,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--profile", default=None, help="also write a kernel profile (batch 1) to this text file")
     args = ap.parse_args(argv)
-    assert torch.cuda.is_available(), "needs a CUDA GPU"
+    from bench.capacity import dirty, source_commit  # here: capacity imports this module for its overlap bound
+
+    if not torch.cuda.is_available():
+        ap.error("needs a CUDA GPU (it times CUDA graph replays)")
+    if args.iters < 1 or args.warmup < 0:
+        ap.error(f"--iters and --warmup: expected at least 1 and 0, got {args.iters} and {args.warmup}")
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    if why := unwritable(args.out):  # before minutes of model building, not after
+        ap.error(f"--out: {why}")
     torch.backends.cuda.matmul.allow_tf32 = True
     results = {"gpu": torch.cuda.get_device_name(), "date": datetime.date.today().isoformat(),
+               "commit": source_commit(), "dirty": dirty(),
                "torch": torch.__version__, "command": "python " + " ".join([sys.argv[0], *(argv or sys.argv[1:])]),
                "dtype": "bfloat16", "cuda_graphs": True, "models": {}}
     for arch in args.models.split(","):

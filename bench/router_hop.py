@@ -29,6 +29,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from shared import control  # noqa: E402
+from shared.files import unwritable  # noqa: E402
 from shared.protocol import (InferReply, InferRequest, ModelInfo, decode, encode, header_id,  # noqa: E402
                              unpack_header)
 from tests.helpers import free_ports  # noqa: E402
@@ -83,6 +84,10 @@ def main() -> None:
     p.add_argument("--role", choices=["direct", "executor"], help=argparse.SUPPRESS)
     p.add_argument("--addr", help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.iters < 1 or args.warmup < 0:  # an IndexError after the whole run, before
+        p.error(f"--iters and --warmup: expected at least 1 and 0, got {args.iters} and {args.warmup}")
+    if args.out and (why := unwritable(args.out)):  # before the run, not after it
+        p.error(f"--out: {why}")
     if args.role == "direct":
         return serve_direct(args.addr)
     if args.role == "executor":

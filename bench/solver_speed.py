@@ -2,9 +2,11 @@
 
 Usage: python bench/solver_speed.py [--out bench/results/solver_speed.json] [--instances 5]
 
-Instances are built feasible by construction: every GPU is filled close to its limit
-with 1-3 of the models it hosts (r_ij = floor(share * C_i)), and N_i is the row sum, so
-the GPUs run ~90-100% full and the solver has little slack. Two placements per size:
+Instances are built feasible by construction: every GPU is filled towards its limit
+with 1-3 of the models it hosts (r_ij = floor(share * C_i)), and N_i is the row sum. The
+rounding down costs up to one robot per model and GPU, so with limits of 2-12 a GPU runs
+at 14-100% of its limit (mean about 82% over the fixed seeds; the demand is 64-94% of the
+cluster's capacity). Two placements per size:
 ``full`` (every model on every GPU) and ``partial`` (each model on a random subset of
 GPUs, every GPU hosting at least one model). Seeds are fixed.
 """
@@ -12,6 +14,7 @@ GPUs, every GPU hosting at least one model). Seeds are fixed.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
 import platform
@@ -71,6 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT_S, help="CP-SAT time limit per solve, seconds")
     ap.add_argument("--workers", type=int, default=None, help="CP-SAT workers (default: 1, repeatable plans; more race in parallel and are not deterministic)")
     args = ap.parse_args(argv)
+    if args.instances < 1:
+        ap.error(f"--instances: expected at least 1, got {args.instances}")
+    if not args.time_limit > 0:
+        ap.error(f"--time-limit: expected a positive number of seconds, got {args.time_limit}")
+    if args.workers is not None and args.workers < 1:
+        ap.error(f"--workers: expected at least 1, got {args.workers}")
 
     # Warm-up: the first solve pays for loading OR-Tools' native library.
     solve(make_problem(2, [("A", 4, 6, None), ("B", 4, 2, None)]))
@@ -120,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
         pass
     out = {
         "command": "python " + " ".join([os.path.relpath(__file__, ROOT)] + (argv if argv is not None else sys.argv[1:])),
-        "commit": commit, "cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+        "commit": commit, "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
         "time_limit_s": args.time_limit, "summary": rows, "runs": runs,
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

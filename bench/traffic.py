@@ -33,6 +33,8 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # sibling bench modules (capacity)
 
 from services.controlplane.solver import ModelDemand, PlanProblem, solve  # noqa: E402
+from shared.config import ConfigError, engine_config  # noqa: E402
+from shared.files import unwritable  # noqa: E402
 
 PAPER_DEADLINES_MS = {"pi0": 156.0, "xr0": 117.0, "smolvla": 50.0, "groot_n15": 53.0}
 
@@ -274,8 +276,9 @@ def exp_strategies(args, engine: dict, sim: dict, limit_sim: dict, pool: DeviceP
 
 
 def placement_variants(args) -> list[Variant]:
-    return [Variant(f"{a}-ft{i}", a, i + 1, args.hz, PAPER_DEADLINES_MS[a]) for a in (args.arch, args.arch2)
-            for i in range(4)]
+    # --deadline is --arch's (its help says so); it used to be ignored here for an architecture with a paper deadline.
+    deadline = {args.arch: args.deadline or PAPER_DEADLINES_MS[args.arch], args.arch2: PAPER_DEADLINES_MS[args.arch2]}
+    return [Variant(f"{a}-ft{i}", a, i + 1, args.hz, deadline[a]) for a in (args.arch, args.arch2) for i in range(4)]
 
 
 def exp_placements(args, engine: dict, sim: dict, limit_sim: dict, pool: DevicePool, gpu: str) -> dict:
@@ -352,6 +355,22 @@ def main(argv: list[str] | None = None) -> int:
         p.error("limits: --limits-cache is needed (the file the measured limits go to)")
     if args.deadline:
         PAPER_DEADLINES_MS.setdefault(args.arch, args.deadline)
+    # Checked before any model is built or limit measured (a traceback, or a run that quietly measured something else).
+    if args.arch not in PAPER_DEADLINES_MS:
+        p.error(f"--arch {args.arch!r} has no paper deadline: give --deadline")
+    if args.experiment == "placements" and args.arch2 not in PAPER_DEADLINES_MS:
+        p.error(f"--arch2: expected one of {', '.join(PAPER_DEADLINES_MS)}, got {args.arch2!r}")
+    if args.gpus < 1:
+        p.error(f"--gpus: expected at least 1, got {args.gpus}")
+    if args.experiment == "strategies" and len(args.shares.split(",")) != len(args.rates.split(",")):
+        # zip() dropped the variants past the shorter list: they got no robots, and the stated load was wrong.
+        p.error(f"--shares: expected one share per --rates entry ({len(args.rates.split(','))}), got {args.shares!r}")
+    try:
+        engine_config({"kind": args.engine, "max_batch": args.max_batch})
+    except ConfigError as exc:
+        p.error(f"--max-batch or --engine: {exc}")
+    if args.out and (why := unwritable(args.out)):
+        p.error(f"--out: {why}")
     devices = args.devices.split(",")
     engine = {"kind": args.engine, "max_batch": args.max_batch}
     if args.sm_table:
@@ -377,8 +396,10 @@ def main(argv: list[str] | None = None) -> int:
                       "devices": devices, "torch": torch.__version__, "wall_s": round(time.monotonic() - t0, 1),
                       "command": "python bench/traffic.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     if args.out:
-        with open(args.out, "w") as fh:
-            json.dump(result, fh, indent=2, default=str)
+        from services.executor.simulation import _json_safe
+
+        with open(args.out, "w") as fh:  # NaN and Infinity are not JSON (misses_vs_ip when IP missed nothing): null
+            json.dump(_json_safe(result), fh, indent=2, default=str, allow_nan=False)
     for v in result["variants"]:
         print(f"limit {v['name']:<12} {v['hz']:g} Hz: {v['limit']} robots per GPU" + (f", {v['robots']} robots"
                                                                                     if v["robots"] else ""))

@@ -43,6 +43,13 @@ def test_e4_runs_both_engines_on_the_same_workload(tmp_path):
     assert set(r["summary"]["mean_miss_ratio"]) == {"robion", "monolithic"}
 
 
+def test_the_engines_take_turns_running_first_from_one_robot_count_to_the_next(tmp_path):
+    """Who ran first went by the count's parity, so every documented sweep (all even counts) ran Robion first."""
+    r = run(tmp_path, "e4", "--scenarios", "same-2", "--robots", "2,4")
+    assert [(row["robots"], row["engine"]) for row in r["rows"]] == [(2, "robion"), (2, "monolithic"),
+                                                                      (4, "monolithic"), (4, "robion")]
+
+
 def test_e5_policies_and_deadlines(tmp_path):
     r = run(tmp_path, "e5", "--scenarios", "equal-deadlines", "--robots", "2")
     assert sorted(row["engine"] for row in r["rows"]) == ["esf", "lqf", "rr"]

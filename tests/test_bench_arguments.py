@@ -1,0 +1,64 @@
+"""The benchmarks refuse bad arguments before they build a model: exit 2 with the option named. Before, some ran on
+to a wrong result with exit 0 (a max_batch of 0 measured as a capacity of 0 in every row, variants left without
+robots), some failed with a traceback after the run, and engine_gap.py then hung on its engine's thread."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+CASES = {
+    "engine_gap seconds": (["engine_gap.py", "--models", "heavytoy:small", "--seconds", "0"], "--seconds"),
+    "engine_gap rate": (["engine_gap.py", "--models", "heavytoy:small", "--rate", "-5"], "--rate"),
+    "engine_gap max batch": (["engine_gap.py", "--models", "heavytoy:small", "--max-batch", "3"], "--max-batch"),
+    "engine_gap ahead": (["engine_gap.py", "--models", "heavytoy:small", "--ahead", "of"], "--ahead"),
+    "colocation max batch": (["colocation.py", "e4", "--size", "tiny", "--device", "cpu", "--max-batch", "0"],
+                             "--max-batch"),
+    "colocation epochs": (["colocation.py", "e4", "--size", "tiny", "--device", "cpu", "--epochs", "0"], "--epochs"),
+    "colocation out": (["colocation.py", "e4", "--size", "tiny", "--device", "cpu", "--out", "/nonexistent/r.json"],
+                       "--out"),
+    "interdisagg target": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "tiny", "--target", "1.5"],
+                           "--target"),
+    "interdisagg sweep": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "tiny", "--sweep", "0,1"], "--sweep"),
+    "interdisagg size": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "bogus"], "--size"),
+    "interdisagg max batch": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "tiny", "--max-batch", "0"],
+                              "--max-batch"),
+    "traffic shares": (["traffic.py", "strategies", "--devices", "cpu", "--rates", "1,2,2,4", "--shares", "1,1"],
+                       "--shares"),
+    "traffic arch2": (["traffic.py", "placements", "--devices", "cpu", "--arch2", "toy"], "--arch2"),
+    "traffic max batch": (["traffic.py", "strategies", "--devices", "cpu", "--max-batch", "0"], "--max-batch"),
+    "router_hop iters": (["router_hop.py", "--iters", "0"], "--iters"),
+    "router_hop out": (["router_hop.py", "--iters", "5", "--out", "/nonexistent/r.json"], "--out"),
+    "solver_speed instances": (["solver_speed.py", "--instances", "0"], "--instances"),
+    "solver_speed time limit": (["solver_speed.py", "--time-limit", "0"], "--time-limit"),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_bad_argument_is_refused_with_exit_2_naming_it(case, tmp_path):
+    argv, option = CASES[case]
+    res = subprocess.run([sys.executable, f"bench/{argv[0]}", *argv[1:]], cwd=ROOT, capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 2, (res.returncode, res.stderr[-1500:])
+    assert "error: " + option in res.stderr, res.stderr[-1500:]
+    assert "Traceback" not in res.stderr
+    assert not Path("/nonexistent").exists()  # refused before anything was written
+
+
+def test_traffic_placements_use_the_deadline_given_for_arch():
+    """--deadline is --arch's; placements kept the paper's 156 ms for pi0 whatever it said."""
+    import argparse
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    import traffic
+
+    args = argparse.Namespace(arch="pi0", arch2="xr0", hz=2.0, deadline=100.0)
+    deadlines = {v.arch: v.slo_ms for v in traffic.placement_variants(args)}
+    assert deadlines == {"pi0": 100.0, "xr0": 117.0}
+    args.deadline = 0.0  # not given: the paper's
+    assert {v.arch: v.slo_ms for v in traffic.placement_variants(args)} == {"pi0": 156.0, "xr0": 117.0}
