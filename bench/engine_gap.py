@@ -82,11 +82,12 @@ def main() -> None:
                        "static_sms": args.static_sms})
     except ConfigError as exc:
         ap.error(f"--max-batch, --sm-policy or --static-sms: {exc}")
-    for variant in args.ahead.split(","):
+    for variant in (v.strip() for v in args.ahead.split(",")):
         try:
-            variant.strip() in ("on", "off") or float(variant)
+            if variant not in ("on", "off"):
+                float(variant)
         except ValueError:
-            ap.error(f"--ahead: expected off, on or a slack in us, got {variant.strip()!r}")
+            ap.error(f"--ahead: expected off, on or a slack in us, got {variant!r}")
     if args.out and (why := unwritable(args.out)):
         ap.error(f"--out: {why}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")

@@ -277,8 +277,10 @@ def exp_strategies(args, engine: dict, sim: dict, limit_sim: dict, pool: DeviceP
 
 def placement_variants(args) -> list[Variant]:
     # --deadline is --arch's (its help says so); it used to be ignored here for an architecture with a paper deadline.
-    deadline = {args.arch: args.deadline or PAPER_DEADLINES_MS[args.arch], args.arch2: PAPER_DEADLINES_MS[args.arch2]}
-    return [Variant(f"{a}-ft{i}", a, i + 1, args.hz, deadline[a]) for a in (args.arch, args.arch2) for i in range(4)]
+    def deadline(arch: str) -> float:
+        return (args.deadline if arch == args.arch else 0.0) or PAPER_DEADLINES_MS[arch]
+
+    return [Variant(f"{a}-ft{i}", a, i + 1, args.hz, deadline(a)) for a in (args.arch, args.arch2) for i in range(4)]
 
 
 def exp_placements(args, engine: dict, sim: dict, limit_sim: dict, pool: DevicePool, gpu: str) -> dict:
