@@ -64,8 +64,8 @@ def parse_splits(text: str | None, n: int) -> list[tuple[int, int]]:
     return out
 
 
-def search(label: str, host: EngineHost, model: str, args, sim: SimConfig) -> dict:
-    robots = [int(x) for x in args.sweep.split(",") if x.strip()] if args.sweep else None
+def search(label: str, host: EngineHost, model: str, args, sim: SimConfig, robots: list[int] | None) -> dict:
+    """``robots``: the counts of --sweep, or None to search."""
     try:
         res = compare_capacity({label: host}, model, args.hz, sim, args.target, robots, args.start, args.max_robots,
                                early_stop=True, progress=not args.quiet,
@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.sm_table:
             overrides["sm_table"] = args.sm_table
         host = EngineHost(engine_factory(args.intra_engine, served, devices[0], **overrides), label="intra")
-        row = search("intra", host, args.arch, args, sim)
+        row = search("intra", host, args.arch, args, sim, robots)
         per_gpu = row["capacity"]
         doc["rows"].append({**row, "label": "intra", "engine": args.intra_engine, "devices": devices,
                             "measured_on": devices[0], "capacity_per_gpu": per_gpu, "capacity": per_gpu * n})
@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         host = EngineHost(engine_factory("interdisagg", served, devices[0], max_batch=args.max_batch,
                                          handoff_slots=args.handoff_slots, vlm_devices=",".join(vlm),
                                          action_devices=",".join(act)), label=label)
-        row = search(label, host, args.arch, args, sim)
+        row = search(label, host, args.arch, args, sim, robots)
         doc["rows"].append({**row, "label": label, "engine": "interdisagg", "vlm_devices": vlm,
                             "action_devices": act, "capacity_per_gpu": row["capacity"] / n})
         write()

@@ -137,7 +137,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{arch}: done in {time.time() - t0:.1f} s", file=sys.stderr, flush=True)
         del model
         torch.cuda.empty_cache()
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(results, f, indent=2)
 

@@ -46,15 +46,15 @@ class Hosted:
     inputs: dict[str, ServedInput]
 
 
-def free_memory(device: torch.device) -> None:
-    """Collect what nothing references any more (cycles included) and return the device's cached blocks, so a build
-    that follows finds the memory free (best effort)."""
+def free_memory() -> None:
+    """Collect what nothing references any more (cycles included) and return CUDA's cached blocks, so a build that
+    follows finds the memory free (best effort; a no-op for CUDA where this process never used it)."""
     gc.collect()
-    if device.type == "cuda":
-        try:
+    try:
+        if torch.cuda.is_available():
             torch.cuda.empty_cache()
-        except Exception:
-            log.debug("could not empty the CUDA cache", exc_info=True)
+    except Exception:
+        log.debug("could not empty the CUDA cache", exc_info=True)
 
 
 def _weights_key(mc: ModelConfig) -> tuple:

@@ -23,7 +23,6 @@ attainment >= target, found by exponential growth then bisection.
 from __future__ import annotations
 
 import dataclasses
-import gc
 import itertools
 import logging
 import math
@@ -37,6 +36,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 from services.executor.engine import Engine, ResultSink
+from services.executor.hosting import free_memory
 from services.executor.scheduler import Request, Result
 from services.executor.tokens import tokenizer_for
 from shared.models.base import VLAModel
@@ -382,14 +382,7 @@ class EngineHost:
         if close is not None:  # engines with worker processes (procdisagg) stop them here
             close()
         del engine
-        gc.collect()
-        try:
-            import torch
-
-            if torch.cuda.is_available():
-                torch.cuda.empty_cache()
-        except Exception:  # freeing cached memory is best effort
-            log.debug("could not empty the CUDA cache", exc_info=True)
+        free_memory()
 
 
 def _as_host(engine: EngineHost | EngineFactory) -> EngineHost:

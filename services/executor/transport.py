@@ -429,7 +429,7 @@ class ExecutorIO:
             outcome = {"id": load_id, "ok": False, "error": failure}
             hosted = None
             self.served = {}
-            free_memory(self.store.device)
+            free_memory()
             try:
                 hosted = self.store.load(previous)
                 self.served = hosted.inputs
