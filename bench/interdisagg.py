@@ -44,10 +44,11 @@ log = logging.getLogger("bench.interdisagg")
 
 
 def default_devices() -> str:
+    """Every visible GPU; raises ValueError where there is none."""
     import torch
 
     if not torch.cuda.is_available():
-        raise SystemExit("--devices: no CUDA device here; give e.g. --devices cpu,cpu for a CPU run")
+        raise ValueError("no CUDA device here; give e.g. --devices cpu,cpu for a CPU run")
     return ",".join(str(i) for i in range(torch.cuda.device_count()))
 
 
@@ -59,7 +60,7 @@ def parse_splits(text: str | None, n: int) -> list[tuple[int, int]]:
     for item in filter(None, (s.strip() for s in text.split(","))):
         a, sep, b = item.partition(":")
         if not sep or not a.isdigit() or not b.isdigit() or int(a) < 1 or int(b) < 1 or int(a) + int(b) != n:
-            raise SystemExit(f"--splits: {item!r} is not a:b with a, b >= 1 and a + b = {n} (the devices given)")
+            raise ValueError(f"{item!r} is not a:b with a, b >= 1 and a + b = {n} (the devices given)")
         out.append((int(a), int(b)))
     return out
 
@@ -125,14 +126,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         devices = parse_devices(args.devices or default_devices(), required=True)
     except ValueError as exc:
-        raise SystemExit(f"--devices: {exc}") from None
+        p.error(f"--devices: {exc}")
     n = len(devices)
     if n < 2:
-        raise SystemExit("--devices: disaggregation needs at least 2 devices")
-    splits = parse_splits(args.splits, n)
+        p.error("--devices: disaggregation needs at least 2 devices")
+    try:
+        splits = parse_splits(args.splits, n)
+    except ValueError as exc:
+        p.error(f"--splits: {exc}")
     deadline_ms = args.deadline or PAPER_DEADLINES_MS.get(args.arch)
     if deadline_ms is None:
-        raise SystemExit(f"--deadline: the paper gives none for {args.arch!r}")
+        p.error(f"--deadline: the paper gives none for {args.arch!r}")
     sim = SimConfig(epochs=args.epochs, duration_s=args.duration, drain_s=args.drain, seed=args.seed,
                     network=args.network)
     doc: dict = {

@@ -1,6 +1,7 @@
 """Traffic-controller solve time on random tight-but-feasible instances.
 
 Usage: python bench/solver_speed.py [--out bench/results/solver_speed.json] [--instances 5]
+(without --out the table is printed and no file is written)
 
 Instances are built feasible by construction: every GPU is filled towards its limit
 with 1-3 of the models it hosts (r_ij = floor(share * C_i)), and N_i is the row sum. The
@@ -69,7 +70,7 @@ def pct(xs: list[float], q: float) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(ROOT / "bench/results/solver_speed.json"))
+    ap.add_argument("--out", help="JSON results file (default: none; the table is printed either way)")
     ap.add_argument("--instances", type=int, default=5, help="random instances per size and placement")
     ap.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT_S, help="CP-SAT time limit per solve, seconds")
     ap.add_argument("--workers", type=int, default=None, help="CP-SAT workers (default: 1, repeatable plans; more race in parallel and are not deterministic)")
@@ -133,8 +134,9 @@ def main(argv: list[str] | None = None) -> int:
         "cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
         "time_limit_s": args.time_limit, "summary": rows, "runs": runs,
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
 
     print(f"{'size':>8} {'placement':>9} {'n':>3} {'median_s':>9} {'p99_s':>7} {'max_s':>7} {'optimal':>8} {'target':>7}")
     for r in rows:

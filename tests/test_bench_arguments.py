@@ -28,6 +28,11 @@ CASES = {
     "interdisagg size": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "bogus"], "--size"),
     "interdisagg max batch": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "tiny", "--max-batch", "0"],
                               "--max-batch"),
+    "interdisagg one device": (["interdisagg.py", "--devices", "cpu", "--size", "tiny"], "--devices"),
+    "interdisagg splits": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "tiny", "--splits", "1:2"],
+                           "--splits"),
+    "interdisagg deadline": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "tiny", "--arch", "toy"],
+                             "--deadline"),
     "traffic shares": (["traffic.py", "strategies", "--devices", "cpu", "--rates", "1,2,2,4", "--shares", "1,1"],
                        "--shares"),
     "traffic arch2": (["traffic.py", "placements", "--devices", "cpu", "--arch2", "toy"], "--arch2"),
@@ -62,3 +67,22 @@ def test_traffic_placements_use_the_deadline_given_for_arch():
     assert deadlines == {"pi0": 100.0, "xr0": 117.0}
     args.deadline = 0.0  # not given: the paper's
     assert {v.arch: v.slo_ms for v in traffic.placement_variants(args)} == {"pi0": 156.0, "xr0": 117.0}
+
+
+def test_solver_speed_writes_only_the_file_it_is_given(tmp_path):
+    """Its default --out was the committed bench/results/solver_speed.json, so a trial run replaced the recorded one."""
+    committed = ROOT / "bench/results/solver_speed.json"
+    before = committed.read_bytes()
+    argv = [sys.executable, "bench/solver_speed.py", "--instances", "1", "--time-limit", "0.2"]
+    res = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-1500:]
+    assert "median_s" in res.stdout  # the table is printed either way
+    assert committed.read_bytes() == before
+    out = tmp_path / "speed.json"
+    res = subprocess.run(argv + ["--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-1500:]
+    import json
+
+    doc = json.loads(out.read_text())
+    assert doc["time_limit_s"] == 0.2 and doc["summary"]
+    assert committed.read_bytes() == before
