@@ -356,6 +356,9 @@ def small_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: tor
     ``[B or 1, 1, M or 1, L]`` -> out ``[B, M, H, D]`` memory order, returned as ``[B, H, M, D]``.
 
     With a workspace the split-KV partials are merged inside the same launch (see ``Workspace``)."""
+    q, k, v = unit_last(q), unit_last(k), unit_last(v)
+    if bias is not None:
+        bias = unit_last(bias)
     b, h, m, d = q.shape
     length = k.shape[2]
     out = torch.empty(b, m, h, d, device=q.device, dtype=q.dtype).transpose(1, 2)
@@ -415,7 +418,7 @@ def gemm_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torc
     padded = -(-length // 8) * 8  # 16-byte rows for cuBLAS
     probs = torch.empty(b * h, m, padded, device=q.device, dtype=q.dtype)[..., :length]
     has_bias = bias is not None
-    bias, b_sb, b_sm = _bias_args(bias, scores)
+    bias, b_sb, b_sm = _bias_args(unit_last(bias) if has_bias else None, scores)
     block_l = triton.next_power_of_2(length)
     rows = max(1, min(16, 4096 // block_l))
     _softmax_rows_kernel[(b * h, triton.cdiv(m, rows))](
@@ -516,7 +519,7 @@ def gated_act(x: torch.Tensor, act: str, row_stats: RowStats | None = None, row_
     if not triton_enabled(x):
         return _gated_act_ref(x, act, row_stats.rstd(row_eps) if row_stats is not None else None)
     n = x.shape[-1] // 2
-    x2 = x.reshape(-1, 2 * n)
+    x2 = unit_last(x.reshape(-1, 2 * n))
     out = torch.empty(x2.shape[0], n, device=x.device, dtype=x.dtype)
     block = min(1024, triton.next_power_of_2(n))
     _gated_act_kernel[(x2.shape[0], math.ceil(n / block))](
@@ -585,6 +588,13 @@ class Workspace:
     def stats_of(self, x: torch.Tensor) -> RowStats | None:
         """The row statistics of ``x`` if the split-K GEMM that wrote it left them."""
         return self._stats[1] if self._stats is not None and self._stats[0] is x else None
+
+
+def unit_last(t: torch.Tensor) -> torch.Tensor:
+    """``t`` itself when its last dim is contiguous, else a contiguous copy. The kernels below take
+    row strides but index the last dim as contiguous; a transposed view would be read wrongly.
+    The models' own calls always pass such tensors, so this costs them no kernel."""
+    return t if t.stride(-1) == 1 or t.shape[-1] == 1 else t.contiguous()
 
 
 def fast_gemm_ok(x: torch.Tensor, rows: int) -> bool:
@@ -891,8 +901,7 @@ def linear_residual_splitk(x: torch.Tensor, weight: torch.Tensor, bias: torch.Te
         if ws is not None:
             ws.keep_stats(out, None)
         return out
-    x2 = x.reshape(rows, k)
-    r2 = residual.reshape(rows, n)
+    x2, weight, r2 = unit_last(x.reshape(rows, k)), unit_last(weight), unit_last(residual.reshape(rows, n))
     out = torch.empty(rows, n, device=x.device, dtype=residual.dtype)
     bm = _block_m(rows)
     bn = GEMM_CFG["res_bn"]

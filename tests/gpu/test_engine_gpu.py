@@ -174,18 +174,21 @@ def _check(models: dict, results: list[Result], n: int) -> float:
     return worst
 
 
-@pytest.mark.parametrize("policy", ["table", "none"])
+@pytest.mark.parametrize("policy", ["table", "none", "table-eager"])
 def test_lockstep_results_equal_eager_single_and_co_located(policy):
+    """``table-eager``: no CUDA graphs (``engine.graphs: false``), so each restricted VLM runs eagerly on its
+    level's green stream, and its action stage on the action stream beside it."""
     h1 = build_model("heavytoy", "full", seed=1, device=DEV)
     h2 = build_model("heavytoy", "full", seed=2, device=DEV)  # a fine-tuned variant: same table entries
     toy = build_model("toy", "full", seed=3, device=DEV)
     models = {"h1": h1, "h2": h2, "toy": toy}
-    if policy == "table":  # a hand-made table: restricted levels on some pairs, without minutes of profiling
+    if policy.startswith("table"):  # a hand-made table: restricted levels on some pairs, without minutes of profiling
         sm = TableLevel({("heavytoy:full", 2, "heavytoy:full", 2): 96, ("heavytoy:full", 1, "heavytoy:full", 2): 64,
                          ("heavytoy:full", 2, "toy:full", 1): 112, ("toy:full", 1, "heavytoy:full", 1): 32})
     else:
         sm = Unrestricted()
-    eng, results = _engine(models, EngineConfig(kind="robion", max_batch=2), sm)
+    eng, results = _engine(models, EngineConfig(kind="robion", max_batch=2, graphs=policy != "table-eager"), sm)
+    assert eng.runner.eager_vlm == (policy == "table-eager")
     reqs = requests(h1, "h1", 12, 0) + requests(h2, "h2", 12, 1) + requests(toy, "toy", 12, 2)
     order = np.random.default_rng(3).permutation(len(reqs))
     _serve(eng, [reqs[i] for i in order], results)
@@ -193,7 +196,7 @@ def test_lockstep_results_equal_eager_single_and_co_located(policy):
     summary = eng.telemetry.summary()
     print(f"policy {policy}: worst relative error {worst:.2e}; telemetry {summary}")
     assert summary["overlapping"] > 0
-    if policy == "table":
+    if policy.startswith("table"):
         assert set(summary["sm_levels"]) - {"None"}, "some lockstep should have run restricted"
 
 

@@ -390,3 +390,33 @@ def test_full_action_stage_fused_matches_reference(arch, b):
     assert "_folded" in m.expert.layers[1].mlp.gate_up.__dict__
     del m
     torch.cuda.empty_cache()
+
+
+@needs_cuda
+def test_kernels_take_views_whose_last_dim_is_strided():
+    """The Triton kernels index the last dim as contiguous. A transposed view (a user model's weight.t(), a
+    permuted activation) used to be read as if it were laid out row-major: now it is made contiguous first."""
+    import torch.nn.functional as F
+
+    g = torch.Generator(device="cuda").manual_seed(5)
+    # split-K residual GEMM: weight given as the transpose of a [k, n] tensor, x and the residual as column views.
+    rows, k, n = 51, 1024, 2048
+    w = (torch.randn(k, n, device="cuda", generator=g) / k ** 0.5).bfloat16().t()
+    x = torch.randn(k, rows, device="cuda", generator=g).bfloat16().t()
+    r = torch.randn(n, rows, device="cuda", generator=g).bfloat16().t()
+    assert w.stride(-1) != 1 and x.stride(-1) != 1 and r.stride(-1) != 1
+    ref = torch.addmm(r.double(), x.double(), w.double().t())
+    ws = fused.Workspace(torch.device("cuda"))
+    assert _rel(fused.linear_residual_splitk(x, w, None, r.clone(), ws), ref) < 1e-2
+    # gated activation of a column view.
+    a = torch.randn(2 * 4096, 50, device="cuda", generator=g).bfloat16().t()
+    gate, up = a.double().chunk(2, dim=-1)
+    assert _rel(fused.gated_act(a, "silu"), F.silu(gate) * up) < 1e-2
+    # attention with q, k and v whose head dim is strided.
+    b, h, m, length, d = 1, 1, 51, 611, 256
+    q = torch.randn(b, h, d, m, device="cuda", generator=g).bfloat16().transpose(-1, -2)
+    kk = torch.randn(b, h, d, length, device="cuda", generator=g).bfloat16().transpose(-1, -2)
+    vv = torch.randn(b, h, d, length, device="cuda", generator=g).bfloat16().transpose(-1, -2)
+    ref = F.scaled_dot_product_attention(q.double(), kk.double(), vv.double())
+    assert _rel(fused.small_attention(q, kk, vv, None), ref) < 1e-2
+    assert _rel(fused.small_attention(q, kk, vv, None, fused.Workspace(torch.device("cuda"))), ref) < 1e-2
