@@ -264,3 +264,19 @@ def test_a_limit_cached_at_the_searchs_cap_is_measured_again_under_a_higher_cap(
     assert entry["limit"] == 2 and entry["max_robots"] == 2
     cache.write_text(json.dumps({key: {"limit": 1, "max_robots": 2}}))  # below its own cap: the GPU's limit
     assert measure_limits(cfg, "ex0", hosted.models, CPU) == {"toy-a": 1}
+
+
+def test_a_model_that_misses_its_deadline_with_one_robot_gets_no_limit(tmp_path, caplog):
+    """A search where even 1 robot fails the target used to report and cache a limit of 1, which promised a robot
+    the model cannot serve and was reused by every later start. Now nothing is reported or cached."""
+    path, data = cluster_config(tmp_path, models=[{"name": "toy-a", "arch": "toy", "size": "tiny", "slo_ms": 0.001}],
+                                executors=[{"name": "ex0", "device": "cpu", "models": ["toy-a"]}])
+    data["control"]["limits"] = {"auto": True, "epochs": 1, "duration_s": 0.5, "max_robots": 4, "progress": False}
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_config(path)
+    hosted = ModelStore(CPU).load([cfg.model("toy-a")])
+    with caplog.at_level(logging.WARNING, logger="robion.executor"):
+        assert measure_limits(cfg, "ex0", hosted.models, CPU) == {}
+    cache = Path(cfg.control.state_dir) / "limits.json"
+    assert not cache.exists() or json.loads(cache.read_text()) == {}
+    assert any("not even 1 robot" in r.getMessage() for r in caplog.records)

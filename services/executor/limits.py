@@ -167,7 +167,15 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
             log.info("stopped while measuring the robot limit of %s", name)
             return out
         took = time.monotonic() - t0
-        limit = max(1, result.capacity)
+        if result.capacity < 1:
+            # A limit of 1 here (as before) promised a robot the model cannot serve, and was cached, so no later
+            # start measured again. No count met the target: no limit, nothing cached, measured at the next start.
+            log.warning("robot limit of %s: not even 1 robot meets %.0f%% of its %g ms deadline at %g Hz (search took "
+                        "%.0f s); it is planned without a limit until measured again at the next start or given in "
+                        "models[].limit. Is its slo_ms too tight for this GPU?",
+                        name, 100 * lc.target, served.slo_s * 1e3, mc.hz, took)
+            continue
+        limit = result.capacity
         entry = {"limit": limit, "max_robots": lc.max_robots, "measured_s": round(took, 1), "points": [
             {"robots": p.robots, "slo_attainment": p.slo_attainment} for p in result.points]}
         cache.write(key, entry)
