@@ -602,6 +602,13 @@ def test_executors_sharing_a_table_file_keep_each_others_entries(tmp_path):
     '"vlm_batch": 1, "action": "a", "action_batch": 1, "best_sms": "abc", "best_ms": 1.0, "unrestricted_ms": 1.0}]}',
     '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "entries": [{"vlm": "a", '
     '"vlm_batch": 1, "action": "a", "action_batch": 1, "best_sms": 140, "best_ms": 1.0, "unrestricted_ms": 1.0}]}',
+    # Levels outside the entries, which the engine also creates contexts for: a confined action graph's level, a
+    # candidate's timing, a planned SM count (these stopped the executor at every start: GreenStreams raised).
+    '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "action_confine": {"a|1": 5}}',
+    '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "plan_entries": {"a|1": [{"vlm": '
+    '"a", "vlm_batch": 1, "action": "a", "action_batch": 1, "best_sms": 7, "best_ms": 1.0, "unrestricted_ms": 1.0}]}}',
+    '{"gpu": "H100", "sm_count": 132, "torch": "x", "max_batch": 2, "archs": [], "action_plans": {"a|1": -8}}',
+    '{"gpu": "H100", "sm_count": true, "torch": "x", "max_batch": 2, "archs": []}',
 ])
 def test_a_damaged_table_is_profiled_again_not_fatal(tmp_path, monkeypatch, text):
     """Each of these crashed the engine's start with a traceback (JSONDecodeError, AttributeError, TypeError), and

@@ -187,10 +187,24 @@ class SMTable:
             table = cls(**data)
         except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
             raise TableError(f"{path} is no readable SM table ({type(exc).__name__}: {exc})") from None
-        bad = [e.combo for e in table.entries if e.best_sms is not None and not
-               (isinstance(e.best_sms, int) and 0 < e.best_sms < table.sm_count and e.best_sms % SM_GRANULARITY == 0)]
-        if not isinstance(table.sm_count, int) or bad:
-            raise TableError(f"{path} is no readable SM table (SM levels {bad[:3]} on {table.sm_count!r} SMs)")
+        if not isinstance(table.sm_count, int) or isinstance(table.sm_count, bool):
+            raise TableError(f"{path} is no readable SM table (sm_count {table.sm_count!r})")
+
+        def level_ok(sms) -> bool:  # a level a green context can have (GreenStreams' check, which would raise)
+            return (isinstance(sms, int) and not isinstance(sms, bool) and 0 < sms < table.sm_count
+                    and sms % SM_GRANULARITY == 0)
+
+        # Every level the engine may create a context for: the entries', and the confined action graphs' and their
+        # timings' (for_archs serves those too). Only the entries' were checked, and a bad confined level then
+        # stopped the executor at each start instead of being profiled again.
+        bad = [e.combo for e in table.entries if e.best_sms is not None and not level_ok(e.best_sms)]
+        bad += [e.combo for es in table.plan_entries.values() for e in es if e.best_sms is not None
+                and not level_ok(e.best_sms)]
+        bad += [k for k, v in table.action_confine.items() if not level_ok(v)]
+        bad += [k for k, v in table.action_plans.items() if v is not None and not (
+            isinstance(v, int) and not isinstance(v, bool) and 0 < v <= table.sm_count)]
+        if bad:
+            raise TableError(f"{path} is no readable SM table (SM levels of {bad[:3]} on {table.sm_count} SMs)")
         return table
 
 
