@@ -149,6 +149,26 @@ def test_shed_late_never_sheds_for_an_estimate_no_request_could_beat():
     assert [r.id for r in shed] == ["hopeless"] and [r.id for r in batch] == ["fresh"]
 
 
+@pytest.mark.parametrize("shed_late", [False, True])
+def test_peek_passes_over_the_heads_take_would_shed(shed_late):
+    """The engine copies the peeked batch's observations while the GPU is busy; a late head made it another batch than
+    the one taken (a1, a2 against a2, a3), which was then copied again between locksteps."""
+    q = ModelQueues(["a", "b"], policy="esf", shed_late=shed_late)
+    if shed_late:
+        q.note_service("a", 0.030, now=1.0)
+    q.put(req("a", "a1", 0.0, 1.020 if shed_late else 0.5))  # late at t=1.0 (or cannot make it)
+    q.put(req("a", "a2", 0.5, 1.6))
+    q.put(req("a", "a3", 0.6, 1.7))
+    q.put(req("b", "b1", 0.7, 1.65))
+    peeked = q.peek(2, now=1.0)
+    model, batch, shed = q.take(2, now=1.0)
+    assert [r.id for r in shed] == ["a1"]
+    assert (peeked[0], [r.id for r in peeked[1]]) == (model, [r.id for r in batch]) == ("a", ["a2", "a3"])
+    assert q.peek(2, now=1.0)[0] == "b"  # and peek still takes nothing
+    assert q.peek(2, now=2.0) == ("", [])  # everything left would be shed
+    assert q.depths() == {"a": 0, "b": 1}
+
+
 def test_shed_late_drops_heads_that_cannot_finish_in_time():
     q = ModelQueues(["a", "b"], policy="esf", shed_late=True)
     q.note_service("a", 0.030, now=1.0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from collections import deque
@@ -209,13 +210,10 @@ class ModelQueues:
         now = time.monotonic() if now is None else now
         expired: list[Request] = []
         with self._cond:
-            if self._shed_expired:
-                for model, q in self._queues.items():
-                    times = self._service.get(model)
-                    est = times.estimate(now) if times is not None else 0.0
-                    while q and (q[0].deadline <= now or _cannot_make_it(q[0], now, est)):
-                        expired.append(q.popleft())
-                self._pending -= len(expired)
+            for model, n in self._late_heads(now).items():
+                q = self._queues[model]
+                expired.extend(q.popleft() for _ in range(n))
+            self._pending -= len(expired)
             # Those a full queue shed at put left the pending count then.
             expired, self._shed = self._shed + expired, []
             if self._pending == 0:
@@ -227,15 +225,39 @@ class ModelQueues:
             self._pending -= n
             return model, batch, expired
 
-    def peek(self, max_batch: int) -> tuple[str, list[Request]]:
+    def peek(self, max_batch: int, now: float | None = None) -> tuple[str, list[Request]]:
         """The batch ``take`` would return now if nothing changed (no side effects): lets the
-        engine copy the likely next batch's observations while the GPU is busy."""
+        engine copy the likely next batch's observations while the GPU is busy. Heads ``take``
+        would shed are passed over here too: under overload they used to make the copied batch
+        another than the one taken, which was then copied again between locksteps."""
+        now = time.monotonic() if now is None else now
         with self._cond:
-            if self._pending == 0:
+            late = self._late_heads(now)
+            queues = self._queues
+            if late:
+                queues = {m: q if m not in late else deque(itertools.islice(q, late[m], None))
+                          for m, q in queues.items()}
+            if not any(queues.values()):
                 return "", []
-            model = self._policy.pick(self._queues, commit=False)
-            q = self._queues[model]
+            model = self._policy.pick(queues, commit=False)
+            q = queues[model]
             return model, [q[i] for i in range(batch_size_for(len(q), max_batch))]
+
+    def _late_heads(self, now: float) -> dict[str, int]:
+        """Model -> how many requests at the head of its queue are to be shed at ``now`` (shed_expired: deadline
+        passed; shed_late: nearer than the model's recent service time). Models with none are left out."""
+        late: dict[str, int] = {}
+        if not self._shed_expired:
+            return late
+        for model, q in self._queues.items():
+            times = self._service.get(model)
+            est = times.estimate(now) if times is not None else 0.0
+            n = 0
+            while n < len(q) and (q[n].deadline <= now or _cannot_make_it(q[n], now, est)):
+                n += 1
+            if n:
+                late[model] = n
+        return late
 
     def depths(self) -> dict[str, int]:
         with self._cond:
