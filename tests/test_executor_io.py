@@ -429,6 +429,46 @@ def test_a_failed_reload_frees_the_failed_engine_and_models_before_falling_back(
     assert getattr(h.replies["after"], "actions", None) is not None
 
 
+def test_a_failed_reload_keeps_the_attainment_window_of_the_models_it_keeps(harness, monkeypatch):
+    """A failed reload empties the served set while it loads the previous models back. A heartbeat then dropped every
+    model's series, and toy-a came back with a fresh window reading 1.0, its model and deadline unchanged and every
+    reply so far a miss (a deadline of a microsecond)."""
+    from services.executor.engine import MonolithicEngine
+
+    models = [{"name": "toy-a", "arch": "toy", "size": "tiny", "seed": 0, "slo_ms": 0.001},
+              {"name": "toy-b", "arch": "toy", "size": "tiny", "seed": 1, "slo_ms": 500}]
+    h = harness(model_configs=models, engine={"kind": "monolithic", "max_batch": 2, "shed_expired": False},
+                control_plane=True,
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0})
+    ids = [f"a{i}" for i in range(4)]
+    for rid in ids:
+        h.send(h.request(rid))
+    h.wait_replies(ids)
+
+    def ratio():
+        return h.metrics.registry.get_sample_value("robion_slo_attainment_ratio", {"model": "toy-a"})
+
+    assert wait_for(lambda: ratio() == 0.0, 5)
+    real_prepare, real_load = MonolithicEngine.prepare, ModelStore.load
+
+    def prepare(self):
+        if "toy-b" in self.models:
+            raise RuntimeError("CUDA out of memory (simulated)")
+        real_prepare(self)
+
+    def load(self, configs):  # loading takes a while (seconds on a GPU): several heartbeats pass
+        time.sleep(0.3)
+        return real_load(self, configs)
+
+    monkeypatch.setattr(MonolithicEngine, "prepare", prepare)
+    monkeypatch.setattr(ModelStore, "load", load)
+    msg = _load_and_wait_registration(h, ["toy-a", "toy-b"])
+    assert msg["load"]["ok"] is False and sorted(msg["models"]) == ["toy-a"]
+    time.sleep(0.2)
+    assert ratio() == 0.0
+    assert _sample(h, "robion_slo_missed_total", model="toy-a") == 4
+
+
 def test_replies_right_after_a_reload_are_judged_by_the_new_deadlines(harness):
     """The metrics learnt a reload's model set at the next heartbeat, but the registration before it lets traffic in:
     replies in between were judged by the old deadline, or by none (a model just added: every reply counted met).

@@ -503,7 +503,11 @@ class ExecutorIO:
         # On this thread, which alone records results: a reload's new model set (and deadlines) takes effect in the
         # metrics here; the series of a model it took away would show their last values forever.
         served = self.served
-        self.metrics.serve_models({n: s.slo_s for n, s in served.items()})
+        if self._reload is None or not self._reload.is_alive():
+            # Not mid-reload: a failed one empties self.served while it loads the previous models back, and served
+            # models then were dropped and came back with a fresh attainment window, their settings unchanged. The
+            # reload's outcome takes effect at its re-registration (_reregister, above).
+            self.metrics.serve_models({n: s.slo_s for n, s in served.items()})
         # A model with no engine queue (its engine is being replaced) holds nothing: whatever
         # it held was answered when the old engine stopped.
         for model in served:
