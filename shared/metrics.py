@@ -8,6 +8,7 @@ execution count, whose ratio is the mean batch size.
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
@@ -40,7 +41,8 @@ class RouterMetrics:
         self.requests = Counter("robion_router_requests_total", "Requests answered by the router, by outcome",
                                 ["model", "status"], registry=r)
         self.latency = Histogram("robion_router_request_duration_seconds",
-                                 "Time from forwarding a request to an executor until its reply", ["model"],
+                                 "Time from forwarding a request to an executor until its reply with actions "
+                                 "(errors: robion_router_requests_total)", ["model"],
                                  buckets=LATENCY_BUCKETS, registry=r)
         # What robots see (less the network): every request for a served model counts, answered by an executor or by
         # the router itself (a stalled or restarted executor, a time-out, overload, a refusal). An executor's own
@@ -68,7 +70,8 @@ class ExecutorMetrics:
         self.slo_s = models
         self.requests = Counter("robion_requests_total", "Requests answered by the executor, by outcome",
                                 ["model", "status"], registry=r)
-        self.latency = Histogram("robion_request_duration_seconds", "Server time from receipt to reply",
+        self.latency = Histogram("robion_request_duration_seconds", "Server time from receipt to reply, of requests "
+                                 "answered with actions (errors and shed requests: robion_requests_total)",
                                  ["model"], buckets=LATENCY_BUCKETS, registry=r)
         self.queue_wait = Histogram("robion_queue_wait_seconds", "Time a request waited before its batch started",
                                     ["model"], buckets=LATENCY_BUCKETS, registry=r)
@@ -93,7 +96,10 @@ class ExecutorMetrics:
         self.lockstep_gap = Histogram("robion_lockstep_gap_seconds", "CPU gap between locksteps",
                                       buckets=(1e-5, 2.5e-5, 5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 5e-3), registry=r)
         self.sm_level = Gauge("robion_vlm_sm_level", "SMs the VLM stream was restricted to in the last lockstep "
-                              "(the device's SM count when unrestricted)", registry=r)
+                              "(the device's SM count when unrestricted; NaN before the first, and on a CPU)",
+                              registry=r)
+        # An unlabelled gauge exports 0 from the start, which a dashboard reads as a VLM restricted to no SMs.
+        self.sm_level.set(math.nan)
         # Which executor (and device) this endpoint is: Prometheus's info idiom. Not robion_executor_up: that is the
         # control plane's, which reads 0 for a configured executor that is down; a copy here, always 1 while
         # scrapeable, doubled every executor on a dashboard of it.

@@ -48,6 +48,8 @@ def test_metrics_endpoints_and_movement(tmp_path, engine):
                      "robion_stage_duration_seconds", "robion_slo_met_total"]:
             assert f"# TYPE {name}" in before or f"# HELP {name}" in before, name
         assert value(before, "robion_executor_info", executor="ex0", device="cpu") == 1
+        # No lockstep yet: no SM level (an unlabelled gauge read 0, "restricted to no SMs", from the start).
+        assert re.search(r"^robion_vlm_sm_level NaN$", before, re.M)
         # liveness is the control plane's series alone: the executor's own copy doubled every executor
         assert "robion_executor_up" not in before
         control = scrape(cm)
@@ -93,6 +95,7 @@ def test_metrics_endpoints_and_movement(tmp_path, engine):
             time.sleep(0.5)
             locksteps = value(scrape(em), "robion_lockstep_duration_seconds_count")
             assert locksteps >= value(after, "robion_execution_count_total", model="toy-a")
+        assert re.search(r"^robion_vlm_sm_level NaN$", scrape(em), re.M)  # a CPU has no SMs to restrict
 
 
 def test_dashboard_queries_only_metrics_the_services_define():

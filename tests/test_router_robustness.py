@@ -427,9 +427,13 @@ def test_a_request_whose_handling_fails_is_answered_internal_at_once(tmp_path, m
             return real(model, pin)
 
         monkeypatch.setattr(routing, "candidates", candidates)
+        reg = rt.router.metrics.registry
         rep = ask(robot, infer_frames("r1"))
         assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.INTERNAL and rep.id == "r1", rep
         assert not rt.router.in_flight
+        # Counted under its model, a miss, as the router's other answers are (it was in no SLO series, under "").
+        assert reg.get_sample_value("robion_router_slo_missed_total", {"model": "toy-a"}) == 1.0
+        assert reg.get_sample_value("robion_router_requests_total", {"model": "toy-a", "status": "internal"}) == 1.0
         robot.send_multipart(infer_frames("r2"))
         assert ex.poll(2000), "the next request never reached the executor"
         assert decode(ex.recv_multipart()[1:]).id == "r2"
@@ -457,6 +461,28 @@ def test_the_routers_slo_counters_count_every_answer_its_own_included(tmp_path):
         assert isinstance(ask(robot, infer_frames("ok")), InferReply)
         assert isinstance(ask(robot, infer_frames("bad", model="nope")), ErrorReply)  # not served: no series
         assert (slo("met"), slo("missed"), slo("met", "nope")) == (1.0, 1.0, None)
+
+
+def test_a_reply_is_judged_by_the_deadline_its_request_was_sent_under(tmp_path):
+    """A reply arriving after an apply took its model out of the table counted met however late it was (the deadline
+    was read from the table of the reply's time, and a model not in it had none)."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=60.0) as rt:
+        reg = rt.router.metrics.registry
+        ex = rt.executor(b"ex0")
+        robot = rt.robot(b"arm")
+        robot.send_multipart(infer_frames("r1"))
+        assert ex.poll(2000)
+        robot_id, *body = ex.recv_multipart()
+        req = decode(body)
+        # An apply drops toy-a; ex0 stays (it serves toy-b).
+        rt.router.routing.update(RoutingTable(version=2, models={"toy-b": INFO}, routes={"toy-b": ["ex0"]},
+                                              executors=["ex0"]))
+        time.sleep(INFO.deadline_ms / 1e3 + 0.2)
+        ex.send_multipart([robot_id, *encode(InferReply(id=req.id, model=req.model,
+                                                        actions=np.zeros((10, 7), np.float32)))])
+        assert robot.poll(2000) and isinstance(decode(robot.recv_multipart()), InferReply)
+        assert reg.get_sample_value("robion_router_slo_met_total", {"model": "toy-a"}) == 0.0
+        assert reg.get_sample_value("robion_router_slo_missed_total", {"model": "toy-a"}) == 1.0
 
 
 def test_the_routers_own_refusals_of_a_served_models_requests_count_under_it(tmp_path):

@@ -8,6 +8,7 @@ queue plus an inproc wake-up socket (ZeroMQ sockets are not thread-safe).
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -538,7 +539,8 @@ class ExecutorIO:
             if gap is not None:
                 self.metrics.lockstep_gap.observe(gap / 1e6)
             if rec.vlm_batch:
-                self.metrics.sm_level.set(rec.sm_level if rec.sm_level is not None else self._sm_count)
+                # A CPU has no SMs: NaN there ("no value"), not 0, which read as a VLM restricted to nothing.
+                self.metrics.sm_level.set(rec.sm_level if rec.sm_level is not None else self._sm_count or math.nan)
 
     def _count_failures(self, results: list[Result]) -> None:
         """Track the engine's failed requests in a row (before reply_frames, whose own INTERNAL answers, such as

@@ -51,6 +51,9 @@ class InFlight:
     executor: str
     model: str
     sent_at: float
+    # The model's deadline when the request went out (None: no table yet). Its reply is judged by it: by then an
+    # apply may have changed the deadline, or taken the model out of the table.
+    deadline_s: float | None = None
 
 
 @dataclass
@@ -234,9 +237,14 @@ class Router:
         an executor (that one answers it): otherwise its robot would wait out its own timeout for nothing."""
         try:
             robot = frames[0].bytes
-            rid = header_id(unpack_header(frames[1].buffer)) if len(frames) > 1 else ""
+            header = unpack_header(frames[1].buffer) if len(frames) > 1 else {}
+            rid = header_id(header)
+            # The model named, so the answer counts in its SLO series as the router's other answers do (an unserved
+            # name is counted under "" by _reply_error).
+            model = header.get("model") if header.get("kind") == "infer" else None
             if flight_key(robot, rid) not in self.in_flight:
-                self._reply_error(robot, rid, ErrorCode.INTERNAL, "the router failed to handle this request")
+                self._reply_error(robot, rid, ErrorCode.INTERNAL, "the router failed to handle this request",
+                                  model if isinstance(model, str) else "")
         except Exception:  # the answer is best effort: the failure is logged above
             log.debug("could not answer a request whose handling failed", exc_info=True)
 
@@ -321,7 +329,9 @@ class Router:
                 if exc.errno == zmq.EHOSTUNREACH:  # registered but not connected to us (yet / any more)
                     continue
                 raise
-            self.in_flight[key] = InFlight(executor, model, time.monotonic())
+            info = self.routing.table.models.get(model)
+            self.in_flight[key] = InFlight(executor, model, time.monotonic(),
+                                           info.deadline_ms / 1e3 if info is not None else None)
             self.metrics.in_flight.set(len(self.in_flight))
             return
         if full:
@@ -359,8 +369,7 @@ class Router:
         self.metrics.requests.labels(flight.model, status).inc()
         self.metrics.in_flight.set(len(self.in_flight))
         took = time.monotonic() - flight.sent_at
-        info = self.routing.table.models.get(flight.model)
-        met = status == "ok" and (info is None or took <= info.deadline_ms / 1e3)
+        met = status == "ok" and (flight.deadline_s is None or took <= flight.deadline_s)
         (self.metrics.slo_met if met else self.metrics.slo_missed).labels(flight.model).inc()
         if status == "ok":
             self.metrics.latency.labels(flight.model).observe(took)
