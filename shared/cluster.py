@@ -49,6 +49,21 @@ def control_status(address: str, timeout_s: float = 1.0, context: zmq.Context | 
     return reply.get("status") if reply else None
 
 
+def metrics_port_clash(cfg: ClusterConfig) -> str | None:
+    """Why the services of ``cfg`` cannot all serve metrics on one host, if they cannot: two given one port (an
+    executor's ``metrics_port`` equal to another's default 9110 + index, the router's and the control plane's).
+    The second to bind only logs a failure, and Prometheus then scrapes the first under the second's target."""
+    owners: dict[int, str] = {}
+    ports = [("the router", cfg.router.metrics_port), ("the control plane", cfg.control.metrics_port)]
+    ports += [(f"executor {ex.name}", ex.metrics_port_or_default(i)) for i, ex in enumerate(cfg.executors)]
+    for who, port in ports:
+        if port and port in owners:
+            return (f"metrics port {port} is both {owners[port]}'s and {who}'s on this host; give one another "
+                    f"metrics_port (executors default to 9110 + their index; 0 disables)")
+        owners[port] = who
+    return None
+
+
 class LocalCluster:
     """Control plane, router and one process per executor, all children of this process."""
 
@@ -69,6 +84,9 @@ class LocalCluster:
     def start(self, timeout_s: float = 120.0, progress: Callable[[str], None] | None = None) -> dict:
         """Start every process and block until the control plane reports the cluster ready; ``progress`` is told
         of each executor as it registers (an engine's start takes minutes on a GPU: graph capture, profiling)."""
+        clash = metrics_port_clash(self.cfg)
+        if clash is not None:  # all on one host here; executors of a cluster spread over hosts may share a port
+            raise RuntimeError(clash)
         self._spawn("control", "services.controlplane.main")
         self._spawn("router", "services.router.main")
         for ex in self.cfg.executors:

@@ -108,3 +108,17 @@ def test_a_cluster_on_ipv6_addresses_serves_a_robot(tmp_path):
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0 and "'router': 0" in out and "'control': 0" in out
+
+
+def test_two_services_given_one_metrics_port_are_refused_before_anything_starts(tmp_path):
+    """ex0's explicit 9111 is ex1's default (9110 + 1): the second to bind only logged a failure, and Prometheus
+    scraped ex0 as if it were ex1. `robion up` starts everything on one host, so it refuses such a config."""
+    path, data = cluster_config(tmp_path)
+    data["executors"][0]["metrics_port"] = 9111
+    data["executors"][1].pop("metrics_port", None)
+    path.write_text(yaml.safe_dump(data))
+    res = subprocess.run([sys.executable, "-m", "shared.cli", "up", "-c", str(path)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 1, res.stderr[-800:]
+    assert "metrics port 9111 is both executor ex0's and executor ex1's" in res.stderr
+    assert children_of_config(path) == []
