@@ -478,3 +478,29 @@ def test_limits_whose_lcm_overflows_still_get_the_greedy_plan() -> None:
     res = solve(p, "ip", time_limit_s=2.0)
     assert res.feasible and res.source == "greedy" and not check_assignment(p, res.assignment)
     assert sum(sum(per.values()) for per in res.assignment.values()) == sum(c // 4 for c in primes)
+
+
+@pytest.mark.parametrize("share,warned", [(1e6, True), (1e-4, False)])
+def test_a_search_the_wall_clock_ended_says_its_plan_may_not_repeat(monkeypatch: pytest.MonkeyPatch, caplog,
+                                                                   share: float, warned: bool) -> None:
+    """Plans repeat because CP-SAT stops on its deterministic budget. Where the wall clock ends the search first
+    (short limits: CP-SAT's start-up is wall time its budget leaves out), the plan varies with the machine's load,
+    and nothing said so. A budget that cannot bind forces that case; one that binds at once never warns."""
+    import services.controlplane.solver as solver_mod
+
+    monkeypatch.setattr(solver_mod, "_DETERMINISTIC_SHARE", share)
+    p = bench_instance(32, 16, "full", 32163)
+    with caplog.at_level(logging.WARNING, logger=solver_mod.log.name):
+        res = solve(p, "ip", time_limit_s=0.5)
+    assert res.feasible and not res.optimal
+    assert any("may differ between runs" in r.getMessage() for r in caplog.records) == warned
+
+
+def test_the_infeasibility_message_is_exact_and_grammatical_for_huge_populations() -> None:
+    """One model read "model A need ...", and a population of 10^23 was "short by 24999999999999997902848.00"
+    (through a float) beside the exact "Add at least 24999999999999999999998 GPUs"."""
+    res = solve(make_problem(2, [("A", 4, 10**23, None)]), "ip", time_limit_s=2)
+    assert res.status == "infeasible"
+    assert "model A needs 25000000000000000000000.00 GPU-equivalents" in res.diagnosis, res.diagnosis
+    assert "short by 24999999999999999999998.00" in res.diagnosis
+    assert "Add at least 24999999999999999999998 GPUs" in res.diagnosis

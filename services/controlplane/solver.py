@@ -412,7 +412,10 @@ def _max_flow_fast(
 
 
 def _fmt(x: Fraction) -> str:
-    return f"{float(x):.2f}"
+    """Two decimals, exactly: through a float, a population of 10^23 read 24999999999999997902848.00 beside the
+    exact "Add at least 24999999999999999999998 GPUs"."""
+    cents = math.floor(abs(x) * 100 + Fraction(1, 2))  # half away from zero
+    return f"{'-' if x < 0 and cents else ''}{cents // 100}.{cents % 100:02d}"
 
 
 def _gpu_list(gpus: Iterable[int]) -> str:
@@ -483,7 +486,8 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
         detail = "; ".join(f"{m.name}: {m.robots} robots / limit {m.limit} = {_fmt(m.gpu_equivalents)}" for m in ms)
         names = ", ".join(m.name for m in ms)
         lines.append(
-            f"  - {'model' if len(ms) == 1 else 'models'} {names} need {_fmt(need)} GPU-equivalents "
+            f"  - {'model' if len(ms) == 1 else 'models'} {names} {'needs' if len(ms) == 1 else 'need'} "
+            f"{_fmt(need)} GPU-equivalents "
             f"({detail}) but {'is' if len(ms) == 1 else 'are'} hosted only on {_gpu_list(hosts)} "
             f"offering {_fmt(have)}; short by {_fmt(need - have)}."
         )
@@ -911,6 +915,13 @@ def solve_ip(
         return PlanResult("ip", {}, None, False, False, "infeasible", time.perf_counter() - start,
                           _fragmentation_message(problem))
     bound = _bound_on_objective(ip, solver.best_objective_bound)
+    if status != cp_model.OPTIMAL and solver.deterministic_time < 0.95 * work:
+        # The wall clock ended the search before the deterministic budget did, at a point that varies with the
+        # machine's load: the same input may give another plan next time. CP-SAT's start-up is wall time its
+        # deterministic count leaves out, so short limits (under about 2 s on a busy 2-core machine) hit this.
+        log.warning("ip: CP-SAT stopped on the %.2f s wall clock left, having done %.3f of its %.3f deterministic "
+                    "budget: this plan may differ between runs of the same input (a longer time limit avoids it)",
+                    remaining, solver.deterministic_time, work)
     if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
         return fallback(f"CP-SAT status {name}", bound)
 
