@@ -12,10 +12,15 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from shared.config import ConfigError, dial_address, parse_yaml, positive_number, solve_time_limit
 from shared.files import unwritable
 from shared.service import load_or_exit, log_level
+
+if TYPE_CHECKING:
+    from shared.cluster import LocalCluster
+
 
 def checkout_path(relative: str) -> Path:
     """A file of the source tree (configs/, bench/): beside the package in a checkout or an editable install,
@@ -41,12 +46,29 @@ def positive_seconds(text: str) -> float:
     return value
 
 
-def _wait_for_signal() -> None:
+def _wait_for_signal_or_exit(cluster: "LocalCluster") -> bool:
+    """Until SIGINT or SIGTERM, or until the router or the control plane has exited (then False): an `up` that went
+    on waiting with its router dead reported nothing, and exited 0 at the operator's stop. An executor that exits is
+    reported and the others keep serving (routing drops it); the stop's exit code is then 1."""
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    reported: set[str] = set()
     while not stop.wait(0.5):
-        pass
+        for name in sorted(n for n, up in cluster.alive().items() if not up and n not in reported):
+            reported.add(name)
+            print(f"robion up: {name} exited with code {cluster.procs[name].returncode}", file=sys.stderr, flush=True)
+        if reported & {"router", "control"}:
+            print("robion up: stopping the cluster", file=sys.stderr, flush=True)
+            return False
+    return not reported
+
+
+def _ignore_stops() -> None:
+    """While the cluster is being stopped in order: a second Ctrl-C or SIGTERM raised KeyboardInterrupt out of
+    the stop, with a traceback, and left the router and control plane to their parent watch, in no order."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
 
 
 def _say(line: str) -> None:
@@ -68,13 +90,15 @@ def cmd_up(args: argparse.Namespace) -> int:
         print(f"robion is up in {time.monotonic() - t0:.1f} s: robots connect to {dial_address(cfg.router.bind)}; "
               f"models {sorted(status['table']['models'])} on executors {sorted(status['executors'])}. Ctrl-C stops it.",
               flush=True)
-        _wait_for_signal()
+        if not _wait_for_signal_or_exit(cluster):
+            rc = 1
     except KeyboardInterrupt:
         pass
     except (RuntimeError, TimeoutError) as exc:  # LocalCluster.start: a service exited, or not ready in time
         print(f"robion up: {exc}", file=sys.stderr, flush=True)
         rc = 1
     finally:
+        _ignore_stops()
         codes = cluster.stop()
         print(f"robion stopped: {codes}", flush=True)
     return rc
@@ -83,9 +107,17 @@ def cmd_up(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from shared.cluster import LocalCluster
 
+    from services.fleet.robots import check_settings
+
     cfg = load_or_exit(args.config)
     if args.json and (why := unwritable(args.json)):  # before the cluster starts, not after the whole run
         print(f"robion demo: --json: {why}", file=sys.stderr)
+        return 2
+    f = cfg.fleet
+    try:  # the fleet would refuse them too, but only once the cluster had started
+        check_settings(f.robots, f.hz, f.duration_s, f.network, f.seed)
+    except ValueError as exc:
+        print(f"robion demo: fleet.{exc}", file=sys.stderr)
         return 2
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
     # A stop (Ctrl-C, SIGTERM) at any point stops the fleet and the cluster, as `robion up` does.
@@ -109,6 +141,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"robion demo: {exc}", file=sys.stderr, flush=True)
         rc = 1
     finally:
+        _ignore_stops()
         if fleet is not None and fleet.poll() is None:
             fleet.terminate()  # its report would describe a cluster being stopped under it
             try:

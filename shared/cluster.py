@@ -15,8 +15,8 @@ from typing import Callable
 import zmq
 
 from shared import control
-from shared.config import ClusterConfig, dial_address, positive_number
-from shared.service import connect
+from shared.config import ClusterConfig, ConfigError, dial_address, positive_number
+from shared.service import bind, connect
 
 log = logging.getLogger("robion.cluster")
 
@@ -64,6 +64,28 @@ def metrics_port_clash(cfg: ClusterConfig) -> str | None:
     return None
 
 
+def addresses_taken(cfg: ClusterConfig) -> list[str]:
+    """Why the router or control plane could not bind their TCP addresses of ``cfg``, one line each. With another
+    cluster on them, its control plane answered this one's start-up poll "ready" before this one's services had even
+    failed to bind, and this one's executors then registered with it. (ipc:// is not tried: binding an ipc path
+    takes it from whoever holds it.)"""
+    ctx = zmq.Context.instance()
+    problems = []
+    for key, address in (("router.bind", cfg.router.bind), ("router.backend", cfg.router.backend),
+                         ("control.bind", cfg.control.bind)):
+        if not address.startswith("tcp://"):
+            continue
+        sock = ctx.socket(zmq.ROUTER)
+        sock.setsockopt(zmq.LINGER, 0)
+        try:
+            bind(sock, address, key)
+        except ConfigError as exc:  # bind() has closed the socket
+            problems.append(str(exc))
+        else:
+            sock.close()
+    return problems
+
+
 class LocalCluster:
     """Control plane, router and one process per executor, all children of this process."""
 
@@ -87,6 +109,10 @@ class LocalCluster:
         clash = metrics_port_clash(self.cfg)
         if clash is not None:  # all on one host here; executors of a cluster spread over hosts may share a port
             raise RuntimeError(clash)
+        taken = addresses_taken(self.cfg)
+        if taken:
+            raise RuntimeError(f"{'; '.join(taken)}. Is another cluster running with this config? Stop it, or give "
+                               "this one other addresses")
         self._spawn("control", "services.controlplane.main")
         self._spawn("router", "services.router.main")
         for ex in self.cfg.executors:

@@ -56,7 +56,9 @@ def test_a_router_serving_no_models_is_reported(empty_cluster):
 
 @pytest.mark.parametrize("args, field", [(("--hz", "-1"), "--hz"), (("--hz", "0"), "--hz"),
                                          (("--robots", "0"), "--robots"), (("--duration", "-2"), "--duration"),
-                                         (("--network", "carrier-pigeon"), "--network")])
+                                         (("--network", "carrier-pigeon"), "--network"),
+                                         (("--hz", "1e12"), "--hz"),  # a period below the clock's resolution: a hang
+                                         (("--hz", "2", "--duration", "0.1"), "--duration")])  # no robot would send
 def test_bad_settings_are_refused_before_any_robot_starts(empty_cluster, args, field):
     path, cfg = empty_cluster
     res = fleet(path, *args)

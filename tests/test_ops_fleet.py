@@ -95,7 +95,7 @@ def test_json_report_of_a_model_with_no_replies_is_strict_json(tmp_path):
     out = tmp_path / "report.json"
     try:
         res = subprocess.run([sys.executable, "-m", "services.fleet.main", "-c", str(path), "--address",
-                              f"tcp://127.0.0.1:{port}", "--robots", "2", "--duration", "0.3", "--json", str(out)],
+                              f"tcp://127.0.0.1:{port}", "--robots", "2", "--duration", "0.5", "--json", str(out)],
                              capture_output=True, text=True, cwd=ROOT, timeout=60)
     finally:
         router.close()
@@ -176,3 +176,26 @@ def test_latency_counts_from_the_scheduled_send_and_a_late_sender_is_reported(tm
     assert r.p99_ms >= r.send_lag_p99_ms  # each request's latency includes how late it left
     assert "this host sent requests up to" in report.table()
     assert report.to_dict()["models"]["toy-a"]["send_lag_max_ms"] == r.send_lag_max_ms
+
+
+def test_a_fleet_of_more_robots_than_a_default_zmq_context_allows_runs():
+    """The fleet used ZeroMQ's shared context, which allows 1023 sockets: --robots 1100 ended in a ZMQError
+    traceback ("Too many open files"). It now has a context of its own, sized for its robots."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    need = 8192  # both ends of 1100 connections in this process, and ZeroMQ's own descriptors
+    if hard != resource.RLIM_INFINITY and hard < need:
+        pytest.skip(f"the open-files limit of this host is {hard}")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, need), hard))
+    (port,) = free_ports(1)
+    router = HalfDeafRouter(f"tcp://127.0.0.1:{port}")
+    try:
+        report = run_fleet(f"tcp://127.0.0.1:{port}", robots=1100, hz=1, duration_s=1.0, drain_s=0.5, network="none")
+    finally:
+        router.close()
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    r = report.models["toy-a"]
+    assert r.robots == 1100 and r.sent == 1100
+    # Robot 0's answer is UNAVAILABLE, and so is a request whose robot was not connected yet when it was due.
+    assert sum(r.errors.values()) == 1100 and r.errors["NO_REPLY"] >= 1000, r.errors

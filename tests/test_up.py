@@ -122,3 +122,74 @@ def test_two_services_given_one_metrics_port_are_refused_before_anything_starts(
     assert res.returncode == 1, res.stderr[-800:]
     assert "metrics port 9111 is both executor ex0's and executor ex1's" in res.stderr
     assert children_of_config(path) == []
+
+
+def test_a_second_cluster_on_the_same_addresses_is_refused_and_the_first_keeps_serving(tmp_path):
+    """The second `up` polled the first cluster's control plane, read "ready", said it was up, and its executors
+    registered with the first cluster, which had none left once the second was stopped."""
+    path, data = cluster_config(tmp_path)
+    first = start_up(path)
+    try:
+        second = tmp_path / "second.yaml"  # the same addresses; another state_dir
+        data["control"]["state_dir"] = str(tmp_path / "state2")
+        second.write_text(yaml.safe_dump(data))
+        res = subprocess.run([sys.executable, "-m", "shared.cli", "up", "-c", str(second)], cwd=ROOT,
+                             capture_output=True, text=True, timeout=60)
+        assert res.returncode == 1, res.stdout + res.stderr
+        assert "cannot bind" in res.stderr and "another cluster" in res.stderr, res.stderr
+        assert children_of_config(second) == []
+        with RobotClient(data["router"]["bind"], robot_id="after", timeout_s=30) as client:
+            info = client.metadata()["toy-a"]
+            images = {c: np.zeros(info.image_shape, np.uint8) for c in info.cameras}
+            assert client.infer("toy-a", images, np.zeros(info.state_dim, np.float32)).actions is not None
+    finally:
+        first.send_signal(signal.SIGTERM)
+        first.communicate(timeout=60)
+    assert first.returncode == 0
+
+
+def test_up_stops_with_exit_1_when_its_router_dies(tmp_path):
+    """It went on waiting for a signal with its router dead, and exited 0 when stopped."""
+    path, _ = cluster_config(tmp_path)
+    proc = start_up(path)
+    router = [pid for pid in children_of_config(path)
+              if b"services.router.main" in open(f"/proc/{pid}/cmdline", "rb").read()]
+    os.kill(router[0], signal.SIGKILL)
+    try:
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1, out
+    assert "'router': -9" in out
+    assert wait_gone(path) == []
+
+
+def test_a_second_stop_signal_does_not_cut_the_ordered_stop_short(tmp_path):
+    path, data = cluster_config(tmp_path)
+    data["fleet"]["duration_s"] = 60
+    path.write_text(yaml.safe_dump(data))
+    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "demo", "-c", str(path)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = ""
+    while "driving" not in line:
+        line = proc.stdout.readline()
+        assert line, "the demo ended before its fleet started"
+    proc.send_signal(signal.SIGTERM)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGTERM)  # while the first stop is under way
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err, err
+    assert wait_gone(path) == []
+
+
+@pytest.mark.parametrize("fleet, key", [({"hz": 5000}, "fleet.hz"), ({"hz": 2, "duration_s": 0.1}, "fleet.duration")])
+def test_demo_refuses_fleet_settings_its_fleet_would_refuse_before_starting_the_cluster(tmp_path, fleet, key):
+    path, data = cluster_config(tmp_path)
+    data["fleet"].update(fleet)
+    path.write_text(yaml.safe_dump(data))
+    res = subprocess.run([sys.executable, "-m", "shared.cli", "demo", "-c", str(path)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and key in res.stderr, res.stderr
+    assert "starting the cluster" not in res.stdout

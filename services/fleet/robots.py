@@ -18,6 +18,7 @@ log = logging.getLogger("robion.fleet")
 
 INSTRUCTIONS = ["pick up the red block", "open the drawer", "put the bowl on the plate", "stack the cups"]
 LATE_SEND_WARN_MS = 5.0  # a send this late is worth a note under the report
+MAX_HZ = 1000.0  # per robot; a robot calls its model a few times a second
 
 
 @dataclass
@@ -70,6 +71,12 @@ def check_settings(robots: int, hz: float, duration_s: float, network: str, seed
     for name, value in (("hz", hz), ("duration", duration_s)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not positive_number(value):
             raise ValueError(f"{name}: expected a positive number, got {value!r}")
+    if hz > MAX_HZ:
+        # A period below the monotonic clock's resolution never advanced a robot's next send: a hang.
+        raise ValueError(f"hz: expected at most {MAX_HZ:g} requests per second per robot, got {hz!r}")
+    if duration_s < 1 / hz:
+        # Shorter, and a robot whose random start falls after the window sends nothing: a report of 0 sent.
+        raise ValueError(f"duration: expected at least one period (1 / hz = {1 / hz:g} s), got {duration_s!r}")
     if network not in NETWORKS:
         raise ValueError(f"network: expected one of {', '.join(sorted(NETWORKS))}, got {network!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:  # numpy's default_rng refuses it later
@@ -85,66 +92,75 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
     check_settings(robots, hz, duration_s, network, seed)
     rng = np.random.default_rng(seed)
     net = NETWORKS[network]
-    ctx = zmq.Context.instance()
-    probe = RobotClient(address, robot_id=f"fleet-probe-{seed}", context=ctx)
-    meta = probe.metadata()
-    probe.close()
-    if not meta:
-        # No executor has described a model yet (the cluster is still starting, or none was placed).
-        raise ValueError(f"the router at {address} serves no models yet")
-    models = models or sorted(meta)
-    missing = [m for m in models if m not in meta]
-    if missing:
-        raise ValueError(f"models not served: {missing}")
-    # Robots are spread round-robin, so with fewer robots than models the last models get none: reported, they
-    # read 0% SLO attainment for requests never sent.
-    models = models[:robots]
-
+    # A context of its own, sized for the fleet: the shared one allows 1023 sockets, and more robots ended in a
+    # ZMQError traceback.
+    ctx = zmq.Context()
+    ctx.set(zmq.MAX_SOCKETS, robots + 16)
     clients: list[RobotClient] = []
-    obs = []
-    for i in range(robots):
-        model = models[i % len(models)]
-        info = meta[model]
-        clients.append(RobotClient(address, robot_id=f"robot-{seed}-{i:03d}", context=ctx))
-        images = {cam: rng.integers(0, 256, info.image_shape, dtype=np.uint8) for cam in info.cameras}
-        state = rng.standard_normal(info.state_dim).astype(np.float32)
-        obs.append((model, images, state, INSTRUCTIONS[i % len(INSTRUCTIONS)]))
+    try:
+        with RobotClient(address, robot_id=f"fleet-probe-{seed}", context=ctx) as probe:
+            meta = probe.metadata()
+        if not meta:
+            # No executor has described a model yet (the cluster is still starting, or none was placed).
+            raise ValueError(f"the router at {address} serves no models yet")
+        models = models or sorted(meta)
+        missing = [m for m in models if m not in meta]
+        if missing:
+            raise ValueError(f"models not served: {missing}")
+        # Robots are spread round-robin, so with fewer robots than models the last models get none. They are left out
+        # of the report, where they would read 0% SLO attainment for requests never sent.
+        models = models[:robots]
 
-    period = 1.0 / hz
-    start = time.monotonic() + 0.05
-    next_send = [start + rng.uniform(0, period) for _ in range(robots)]
-    end = start + duration_s
-    sent: dict[str, list[str]] = {m: [] for m in models}
-    scheduled: dict[str, float] = {}  # request id -> when its robot was to send it
-    lag: dict[str, list[float]] = {m: [] for m in models}
-    done: dict[str, Completion] = {}
-    while True:
-        now = time.monotonic()
-        for i, c in enumerate(clients):
-            while next_send[i] <= now and next_send[i] < end:
-                model, images, state, text = obs[i]
-                try:
-                    rid = c.submit(model, images, state, text)
-                except RobionError as exc:
-                    # Not sent (send queue full with the router unreachable, a request the router would
-                    # refuse): that request failed, not the run. It counts as sent with its error.
-                    rid = f"unsent-{i}-{next_send[i]}"
-                    done[rid] = Completion(request_id=rid, model=model, sent_at=now, received_at=now, error=exc)
-                sent[model].append(rid)
-                scheduled[rid] = next_send[i]
-                lag[model].append(time.monotonic() - next_send[i])
-                next_send[i] += period  # on the robot's clock, whether or not a reply came
-        upcoming = min((t for t in next_send if t < end), default=None)
-        if upcoming is None:
-            if all(c.pending() == 0 for c in clients) or now > end + drain_s:
-                break
-            wait = 0.05
-        else:
-            wait = max(0.0, upcoming - time.monotonic())
-        for _, comp in wait_any(clients, wait):
-            done[comp.request_id] = comp
-    for c in clients:
-        c.close()
+        obs = []
+        for i in range(robots):
+            model = models[i % len(models)]
+            info = meta[model]
+            try:
+                clients.append(RobotClient(address, robot_id=f"robot-{seed}-{i:03d}", context=ctx))
+            except zmq.ZMQError as exc:
+                raise ValueError(f"robots: could not open a connection for robot {i + 1} of {robots} ({exc}): drive "
+                                 "fewer robots per fleet process, or raise the open-files limit (ulimit -n)") from None
+            images = {cam: rng.integers(0, 256, info.image_shape, dtype=np.uint8) for cam in info.cameras}
+            state = rng.standard_normal(info.state_dim).astype(np.float32)
+            obs.append((model, images, state, INSTRUCTIONS[i % len(INSTRUCTIONS)]))
+
+        period = 1.0 / hz
+        start = time.monotonic() + 0.05
+        next_send = [start + rng.uniform(0, period) for _ in range(robots)]
+        end = start + duration_s
+        sent: dict[str, list[str]] = {m: [] for m in models}
+        scheduled: dict[str, float] = {}  # request id -> when its robot was to send it
+        lag: dict[str, list[float]] = {m: [] for m in models}
+        done: dict[str, Completion] = {}
+        while True:
+            now = time.monotonic()
+            for i, c in enumerate(clients):
+                while next_send[i] <= now and next_send[i] < end:
+                    model, images, state, text = obs[i]
+                    try:
+                        rid = c.submit(model, images, state, text)
+                    except RobionError as exc:
+                        # Not sent (send queue full with the router unreachable, a request the router would
+                        # refuse): that request failed, not the run. It counts as sent with its error.
+                        rid = f"unsent-{i}-{next_send[i]}"
+                        done[rid] = Completion(request_id=rid, model=model, sent_at=now, received_at=now, error=exc)
+                    sent[model].append(rid)
+                    scheduled[rid] = next_send[i]
+                    lag[model].append(time.monotonic() - next_send[i])
+                    next_send[i] += period  # on the robot's clock, whether or not a reply came
+            upcoming = min((t for t in next_send if t < end), default=None)
+            if upcoming is None:
+                if all(c.pending() == 0 for c in clients) or now > end + drain_s:
+                    break
+                wait = 0.05
+            else:
+                wait = max(0.0, upcoming - time.monotonic())
+            for _, comp in wait_any(clients, wait):
+                done[comp.request_id] = comp
+    finally:
+        for c in clients:  # an open socket would hold the context's term() for good
+            c.close()
+        ctx.term()
 
     reports = {}
     for model in models:
