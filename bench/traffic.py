@@ -193,8 +193,8 @@ def measure_limit(v: Variant, size: str, engine: dict, sim: dict, target: float,
 
 
 def measure_limits(variants: list[Variant], args, engine: dict, limit_sim: dict, pool: DevicePool, gpu: str) -> float:
-    """Fill ``limit`` of every variant from the cache file, measuring the missing (architecture,
-    rate) pairs on all devices at once; returns the seconds spent measuring."""
+    """Fill ``limit`` of every variant from the cache file, measuring the missing ones (keyed by architecture,
+    rate, deadline and engine settings) on all devices at once; returns the seconds spent measuring."""
     from services.executor.limits import LimitCache, limit_key
 
     cache = LimitCache(args.limits_cache) if args.limits_cache else None
