@@ -437,6 +437,7 @@ def import_modules(names: list[str], folder: Path | None = None) -> None:
 
 
 def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
+    from shared.models.base import VLAModel
     from shared.models.registry import architectures
 
     import_modules(cfg.imports, folder)
@@ -450,6 +451,10 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
     for i, m in enumerate(cfg.models):
         if m.arch not in archs:
             raise ConfigError(f"models[{i}].arch: unknown architecture {m.arch!r} (known: {', '.join(sorted(archs))})")
+        missing = [s for s in ("vlm_stage", "action_stage") if getattr(archs[m.arch], s) is getattr(VLAModel, s)]
+        if missing:  # else the executor's start failed on NotImplementedError
+            raise ConfigError(f"models[{i}].arch: {m.arch} ({archs[m.arch].__name__}) does not implement "
+                              f"{' and '.join(missing)}, so it cannot be served (docs/models.md)")
         sizes = getattr(archs[m.arch], "CONFIGS", {})
         if m.size not in sizes:
             raise ConfigError(f"models[{i}].size: {m.arch} has no size {m.size!r} (sizes: {', '.join(sorted(sizes))})")

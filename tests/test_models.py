@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from shared.config import ConfigError
+from shared.config import ConfigError, config_from_dict
 from shared.models import ModelIO, VLAModel, build_model, get_architecture, register
 from shared.models.registry import _ARCHS, build_meta
 from shared.models.weights import load_weights, save_weights
@@ -271,3 +271,33 @@ def test_register_misuse_is_refused_where_it_happens():
     with pytest.raises(TypeError, match=r"NoSizes.CONFIGS must be a dict of size name -> config, got NoneType"):
         register("test_no_sizes")(no_sizes)
     assert "test_no_sizes" not in _ARCHS
+
+    # A class without the stages (as registered above for weights alone) was accepted in a cluster config, and
+    # the executor's start failed on a bare NotImplementedError.
+    register("test_no_action")(type("NoAction", (_Tied,), {}))
+    try:
+        with pytest.raises(ConfigError, match=r"models\[0\].arch: test_no_action \(NoAction\) does not implement "
+                                              r"vlm_stage and action_stage"):
+            config_from_dict({"models": [{"name": "m", "arch": "test_no_action", "size": "tiny"}],
+                              "executors": [{"name": "e", "models": ["m"]}]})
+        with pytest.raises(NotImplementedError, match="_Tied does not implement vlm_stage"):
+            _Tied(8).vlm_stage(None, None, None)
+    finally:
+        _ARCHS.pop("test_no_action", None)
+
+
+def test_a_users_model_with_a_small_vocabulary_gets_example_and_prompt_ids_below_it():
+    """example_inputs drew ids up to 199 whatever the model's vocabulary: with 128 ids the default handoff_spec (run
+    by the executor before serving) failed with an IndexError. And the byte tokenizer gave ordinary characters the
+    model's pad id (pad_id 100: every "b"), which the model masks out as padding."""
+    from shared.models.tokenizer import PromptTokenizer
+    from shared.models.toy import ToyVLA
+
+    m = ToyVLA(dataclasses.replace(ToyVLA.CONFIGS["tiny"], vocab=128))
+    images, state, tokens = m.example_inputs(4, generator=torch.Generator().manual_seed(0))
+    assert int(tokens.max()) < 128
+    assert m.handoff_spec(4)  # ran the VLM stage on them
+    ids = PromptTokenizer(8, 128, pad_id=100)("bob bob")
+    assert ids[:8].tolist().count(100) == 0 and len(set(ids[1:8].tolist())) == 3  # b, o and space, none padding
+    assert int(ids.max()) < 128
+    assert PromptTokenizer(8, 512)("bob").tolist()[:4] == [1, 100, 113, 100]  # pad 0: the ids of before

@@ -80,10 +80,10 @@ class VLAModel(nn.Module):
         return {k: (tuple(v.shape), v.dtype) for k, v in out.items()}
 
     def vlm_stage(self, images: torch.Tensor, state: torch.Tensor, tokens: torch.Tensor) -> Handoff:
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} does not implement vlm_stage")
 
     def action_stage(self, handoff: Handoff, noise: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} does not implement action_stage")
 
     def example_inputs(self, batch: int, device: torch.device | str | None = None,
                        generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -93,7 +93,10 @@ class VLAModel(nn.Module):
         images = torch.randint(0, 256, (batch, len(io.cameras), *io.image_shape), dtype=torch.uint8,
                                generator=generator).to(device)
         state = torch.randn(batch, io.state_dim, generator=generator).to(device)
-        tokens = torch.randint(1, 200, (batch, io.prompt_len), generator=generator).to(device)
+        # Below the model's vocabulary where its config states one: a user's model with a smaller vocabulary failed
+        # its first handoff_spec (an IndexError in its embedding) and so stopped the executor's start.
+        vocab = getattr(getattr(self, "cfg", None), "vocab", 200)
+        tokens = torch.randint(1, max(2, min(200, vocab)), (batch, io.prompt_len), generator=generator).to(device)
         return images, state, tokens
 
     def noise(self, batch: int, device: torch.device | str | None = None,

@@ -49,10 +49,14 @@ class PromptTokenizer:
     # -- backends
 
     def _bytes(self, text: str) -> list[int]:
-        span = self.vocab_size - _BYTE_OFFSET
+        # The byte ids step over a pad id among them: the models mask prompt positions by `ids != pad_id`, and a
+        # user's model with pad_id 100 had every "b" (2 + 98) masked out as padding.
+        skip = _BYTE_OFFSET <= self.pad_id < self.vocab_size
+        span = self.vocab_size - _BYTE_OFFSET - skip
         if span < 1:
             raise ValueError(f"vocab_size {self.vocab_size} too small for the byte tokenizer")
-        return [BOS_ID] + [_BYTE_OFFSET + b % span for b in text.encode("utf-8")]
+        ids = (_BYTE_OFFSET + b % span for b in text.encode("utf-8"))
+        return [BOS_ID] + [i + 1 if skip and i >= self.pad_id else i for i in ids]
 
     def _load(self, path: str):
         if not os.path.isfile(path):
