@@ -89,6 +89,15 @@ def _power_of_two(v: Any) -> bool:
     return v >= 1 and v & (v - 1) == 0
 
 
+# Upper bounds where a bigger value only ever meant a mistake, and went on to a hang or a crash: an engine warms up
+# and captures every power-of-two batch up to max_batch (2^40 never became ready), a heartbeat of a microsecond had
+# every executor declared gone, and a fleet of 2^31 robots overflowed ZeroMQ's socket count.
+MAX_BATCH = 256
+MIN_HEARTBEAT_S = 0.01
+FLEET_MAX_ROBOTS = 65536
+FLEET_MAX_HZ = 1000.0  # per robot; a period under the clock's resolution never advanced a robot's next send
+
+
 def _port(v: Any) -> bool:
     """A TCP port, or 0 (disabled): above 65535 the socket's bind raises OverflowError in the service."""
     return 0 <= v <= 65535
@@ -211,7 +220,8 @@ class EngineConfig:
     # which engine runs the stages: a key of ENGINES in services/executor/engine.py, or auto (robion on a GPU,
     # monolithic on the CPU: services/executor/engine.resolve_kind)
     kind: str = "auto"
-    max_batch: int = field(default=2, metadata=_check(_power_of_two, "expected a power of two (1, 2, 4, ...)"))
+    max_batch: int = field(default=2, metadata=_check(lambda v: _power_of_two(v) and v <= MAX_BATCH,
+                                                      f"expected a power of two (1, 2, 4, ...) up to {MAX_BATCH}"))
     policy: str = "esf"  # esf (earliest-SLO-first), rr (round-robin), lqf (largest-queue-first)
     max_queue: int = field(default=256, metadata=_check(positive_number, "expected a positive integer"))
     shed_expired: bool = True  # answer DEADLINE_EXCEEDED instead of running requests already late
@@ -273,7 +283,8 @@ class ControlConfig:
     bind: str = field(default="tcp://127.0.0.1:5557", metadata=_ADDRESS)
     connect: str | None = field(default=None, metadata=_DIAL)
     # address other services dial when it differs from the bind (containers)
-    heartbeat_s: float = field(default=0.5, metadata=_check(positive_number, "expected a positive number"))
+    heartbeat_s: float = field(default=0.5, metadata=_check(lambda v: positive_number(v) and v >= MIN_HEARTBEAT_S,
+                                                            f"expected a number of seconds, at least {MIN_HEARTBEAT_S}"))
     missed_heartbeats: int = field(default=6, metadata=_check(positive_number, "expected a positive integer"))
     state_dir: str = "state"
     metrics_port: int = field(default=9101, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
@@ -290,8 +301,10 @@ class ControlConfig:
 class FleetConfig:
     """The simulated fleet `robion demo` drives."""
 
-    robots: int = field(default=8, metadata=_check(positive_number, "expected a positive integer"))
-    hz: float = field(default=2.0, metadata=_check(positive_number, "expected a positive number"))
+    robots: int = field(default=8, metadata=_check(lambda v: positive_number(v) and v <= FLEET_MAX_ROBOTS,
+                                                   f"expected a positive integer up to {FLEET_MAX_ROBOTS}"))
+    hz: float = field(default=2.0, metadata=_check(lambda v: positive_number(v) and v <= FLEET_MAX_HZ,
+                                                   f"expected a positive number up to {FLEET_MAX_HZ:g}"))
     duration_s: float = field(default=10.0, metadata=_check(positive_number, "expected a positive number"))
     seed: int = field(default=0, metadata=_SEED)
     network: str = "wifi7"
@@ -377,6 +390,8 @@ def _convert(value: Any, tp: Any, path: str) -> Any:
     if tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"{path}: expected a string")
+        if "\0" in value:  # no path, name or address holds one; a file name with one crashed its service (ValueError)
+            raise ConfigError(f"{path}: a NUL character is not allowed")
         return value
     raise ConfigError(f"{path}: unsupported type {tp}")
 
@@ -422,6 +437,15 @@ def _unique_names(names: list[str], path: str) -> set[str]:
     return seen
 
 
+def executor_name_problem(name: str) -> str | None:
+    """What keeps ``name`` from naming an executor, if anything. It is the executor's ZeroMQ socket identity: at most
+    255 bytes, and one starting with a zero byte is reserved by ZeroMQ (either failed only when the executor bound
+    its sockets, as a traceback). A leading "-" would read as an option on the executor's command line."""
+    if len(name.encode()) > MAX_EXECUTOR_NAME_BYTES or name.startswith(("\0", "-")):
+        return f"expected at most {MAX_EXECUTOR_NAME_BYTES} bytes (UTF-8), not starting with a zero byte or '-'"
+    return None
+
+
 def import_modules(names: list[str], folder: Path | None = None) -> None:
     """Import the ``imports`` of a config (their @register decorators add architectures). ``folder``, the
     config file's, is searched after sys.path, so a module beside the config never shadows an installed one."""
@@ -432,7 +456,9 @@ def import_modules(names: list[str], folder: Path | None = None) -> None:
             raise ConfigError(f"imports[{i}]: expected a Python module name such as my_vla or pkg.models, got {name!r}")
         try:
             importlib.import_module(name)
-        except Exception as exc:  # its own import errors included: the operator's module, named with the cause
+        except (Exception, SystemExit) as exc:
+            # Its own import errors included: the operator's module, named with the cause. SystemExit too (a module
+            # that parses sys.argv or calls sys.exit at import): it ended the control plane on a `ctl apply`.
             raise ConfigError(f"imports[{i}]: cannot import {name!r} ({type(exc).__name__}: {exc})") from None
 
 
@@ -464,11 +490,9 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
         raise ConfigError(f"executors: at most {MAX_EXECUTORS} executors in one cluster, got {len(cfg.executors)}")
     _unique_names([e.name for e in cfg.executors], "executors")
     for j, e in enumerate(cfg.executors):
-        # The name is the executor's ZeroMQ socket identity: at most 255 bytes, and one starting with a zero byte
-        # is reserved by ZeroMQ. Either failed only when the executor bound its sockets, as a traceback.
-        if len(e.name.encode()) > MAX_EXECUTOR_NAME_BYTES or e.name.startswith("\0"):
-            raise ConfigError(f"executors[{j}].name: expected at most {MAX_EXECUTOR_NAME_BYTES} bytes (UTF-8), "
-                              "not starting with a zero byte")
+        why = executor_name_problem(e.name)
+        if why:
+            raise ConfigError(f"executors[{j}].name: {why}")
         if not e.models:
             raise ConfigError(f"executors[{j}].models: an executor needs at least one model")
         for k, name in enumerate(e.models):
@@ -482,6 +506,12 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
     for i, m in enumerate(cfg.models):
         if m.name not in hosted:
             raise ConfigError(f"models[{i}]: model {m.name!r} is placed on no executor")
+    binds = {}
+    for key, address in (("router.bind", cfg.router.bind), ("router.backend", cfg.router.backend),
+                         ("control.bind", cfg.control.bind)):
+        if address in binds:  # else the second service to start failed to bind, as if another cluster held it
+            raise ConfigError(f"{key}: {address} is {binds[address]} too; each service binds an address of its own")
+        binds[address] = key
     _validate_engine(cfg.engine)
     _one_of(cfg.control.strategy, STRATEGIES, "control.strategy")
     _one_of(cfg.control.limits.network, NETWORKS, "control.limits.network")
@@ -603,6 +633,11 @@ def _expand_placement(data: Any) -> Any:
         groups = spec
     if not isinstance(groups, list):
         raise ConfigError("placement.groups: expected a mapping {arch: gpus} or a list of {arch, gpus}")
+    # Before the groups look models up by arch: a list there was reported as the group's arch serving nothing, and
+    # below, in a set, it would raise TypeError.
+    for i, m in enumerate(models):
+        if not isinstance(m.get("arch", ""), str):
+            raise ConfigError(f"models[{i}].arch: expected a string")
     used: dict[int, str] = {}
     for g, group in enumerate(groups):
         path = f"placement.groups[{g}]"
@@ -623,9 +658,6 @@ def _expand_placement(data: Any) -> Any:
                 raise ConfigError(f"{path}.gpus: GPU {j} is already in the {used[j]} group; groups are disjoint")
             used[j] = arch
             executors[j]["models"] = list(members)
-    for i, m in enumerate(models):  # looked up in a set just below: a list there would raise TypeError
-        if not isinstance(m.get("arch", ""), str):
-            raise ConfigError(f"models[{i}].arch: expected a string")
     unserved = [m["name"] for m in models if m.get("arch") not in {gr["arch"] for gr in groups}]
     if unserved:
         raise ConfigError(f"placement.groups: no group serves {unserved}")

@@ -91,7 +91,23 @@ def test_defaults():
     # an executor's name is its ZeroMQ identity: the executor died binding its sockets (ZMQError traceback)
     (lambda d: d["executors"][0].update(name="x" * 256), "executors[0].name: expected at most 255 bytes"),
     (lambda d: d["executors"][0].update(name="é" * 128), "executors[0].name: expected at most 255 bytes"),
-    (lambda d: d["executors"][0].update(name="\0ex"), "executors[0].name: expected at most 255 bytes"),
+    (lambda d: d["executors"][0].update(name="\0ex"), "executors[0].name: a NUL character is not allowed"),
+    # read as an option on the executor's command line: it never started, and nothing named the key
+    (lambda d: d["executors"][0].update(name="-cpu1"), "executors[0].name: expected at most 255 bytes (UTF-8), not "
+                                                       "starting with a zero byte or '-'"),
+    # a file name with a NUL crashed its service at start-up (ValueError: embedded null byte)
+    (lambda d: d.update(engine={"telemetry_file": "x\0a"}), "engine.telemetry_file: a NUL character is not allowed"),
+    (lambda d: d.update(control={"state_dir": "st\0ate"}), "control.state_dir: a NUL character is not allowed"),
+    # no upper bound: warm-up doubled the batch until the start timed out; every executor declared gone at once;
+    # an OverflowError in the fleet after the whole cluster had started
+    (lambda d: d.update(engine={"max_batch": 2 ** 40}), "engine.max_batch: expected a power of two (1, 2, 4, ...) "
+                                                         "up to 256"),
+    (lambda d: d.update(control={"heartbeat_s": 1e-6}), "control.heartbeat_s: expected a number of seconds, at least"),
+    (lambda d: d.update(fleet={"robots": 3_000_000_000}), "fleet.robots: expected a positive integer up to 65536"),
+    (lambda d: d.update(fleet={"hz": 1e12}), "fleet.hz: expected a positive number up to 1000"),
+    # the second service to start failed to bind, as if another cluster held the address
+    (lambda d: d.update(router={"bind": "tcp://127.0.0.1:5557"}), "control.bind: tcp://127.0.0.1:5557 is router.bind "
+                                                                 "too"),
     # twice the limit overflowed a C long in the sockets' frame limit (OverflowError traceback)
     (lambda d: d.update(router={"max_message_bytes": 2 ** 62}), "router.max_message_bytes: expected a positive"),
     # the plane re-solves before answering a drain or apply, and `robion ctl` waits that long: a limit of 1e9 s
@@ -193,8 +209,11 @@ def test_placement_must_fit_device_memory():
     ({"models": [{"arch": "toy"}], "gpus": 1, "placement": "mix"}, "models[0].name: missing"),
     ({"models": [{"name": 5, "arch": "toy"}], "gpus": 1, "placement": {"groups": {"toy": 1}}},
      "models[0].name: expected a string"),
-    ({"models": [{"name": "a", "arch": ["toy"]}], "gpus": 1, "placement": {"groups": [{"arch": ["toy"], "gpus": [0]}]}},
+    ({"models": [{"name": "a", "arch": "toy"}], "gpus": 1, "placement": {"groups": [{"arch": ["toy"], "gpus": [0]}]}},
      "placement.groups[0].arch: expected an architecture name"),
+    # the model's arch, not the group's: it was "placement.groups[0].arch: no model of architecture 'toy'"
+    ({"models": [{"name": "a", "arch": ["toy"]}], "gpus": 1, "placement": {"groups": {"toy": 1}}},
+     "models[0].arch: expected a string"),
     ({"models": [{"name": "a", "arch": "toy"}], "gpus": 1, "placement": {"groups": {1: 1}}},
      "placement.groups.1: expected an architecture name"),
 ])

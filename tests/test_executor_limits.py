@@ -7,6 +7,8 @@ cache must not crash at start-up nor report it: it measures the limit again.
 
 import json
 import logging
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -16,7 +18,7 @@ import yaml
 from services.executor.hosting import ModelStore
 from services.executor.limits import device_name, limit_key, measure_limits
 from shared.config import load_config
-from tests.helpers import cluster_config, executor_exit, free_ports
+from tests.helpers import ROOT, cluster_config, executor_exit, free_ports
 
 CPU = torch.device("cpu")
 
@@ -70,6 +72,16 @@ def test_a_bad_cpu_thread_count_stops_the_executor_with_the_variable_named(tmp_p
     res = executor_exit(path, env={**os.environ, "ROBION_CPU_THREADS": value})
     assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
     assert "ROBION_CPU_THREADS" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
+
+
+def test_a_replica_named_past_the_socket_identity_limit_stops_with_the_flag_named(tmp_path):
+    """A replica outside the config (--name, --models) skipped the 255-byte identity check a configured executor
+    gets at load: it ended with a ZMQError traceback when it bound its sockets."""
+    path, _ = cluster_config(tmp_path)
+    res = subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "r" * 300,
+                          "--models", "toy-a"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    assert "--name: expected at most 255 bytes" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
 
 
 @pytest.mark.parametrize("device", ["cuda1", "gpu:0", "cuda:x"])

@@ -62,6 +62,13 @@ def test_a_module_that_cannot_be_imported_is_a_config_error(tmp_path):
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=r"imports\[0\]: expected a Python module name"):
         load_config(path)
+    # A module that exits at import (one that parses sys.argv, or calls sys.exit): SystemExit passed through, and a
+    # `ctl apply` naming it ended the running control plane.
+    (tmp_path / "exits_at_import.py").write_text("import sys\nsys.exit('needs a GPU library')\n")
+    data["imports"] = ["exits_at_import"]
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"imports\[0\]: cannot import 'exits_at_import' \(SystemExit: needs a GPU"):
+        load_config(path)
 
 
 def test_a_bad_robion_imports_entry_is_a_config_error_for_a_service(tmp_path):

@@ -11,7 +11,7 @@ from services.executor.engine import resolve_kind
 from services.executor.hosting import EngineSlot, ModelStore
 from services.executor.limits import measure_limits
 from services.executor.transport import ExecutorIO
-from shared.config import ClusterConfig, ConfigError, ExecutorConfig, parse_devices, valid_device
+from shared.config import ClusterConfig, ConfigError, ExecutorConfig, executor_name_problem, parse_devices, valid_device
 from shared.metrics import ExecutorMetrics, serve
 from shared.placement import check_fit
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
@@ -57,6 +57,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.models or not args.name:
             log.error("no executor named %r in %s; give --name and --models for a replica outside the config",
                       args.name, args.config)
+            return 2
+        why = executor_name_problem(args.name)
+        if why:  # a configured executor's name is checked at load; a replica's only here
+            log.error("--name: %s", why)
             return 2
         ex_cfg = ExecutorConfig(name=args.name, models=args.models.split(","))
         unknown = [m for m in ex_cfg.models if m not in {mc.name for mc in cfg.models}]

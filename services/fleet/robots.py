@@ -11,14 +11,13 @@ import numpy as np
 import zmq
 
 from shared.client import Completion, RequestTimeout, RobionError, RobotClient, wait_any
-from shared.config import positive_number
+from shared.config import FLEET_MAX_HZ, FLEET_MAX_ROBOTS, positive_number
 from shared.netmodel import NETWORKS
 
 log = logging.getLogger("robion.fleet")
 
 INSTRUCTIONS = ["pick up the red block", "open the drawer", "put the bowl on the plate", "stack the cups"]
 LATE_SEND_WARN_MS = 5.0  # a send this late is worth a note under the report
-MAX_HZ = 1000.0  # per robot; a robot calls its model a few times a second
 
 
 @dataclass
@@ -66,14 +65,14 @@ class FleetReport:
 
 def check_settings(robots: int, hz: float, duration_s: float, network: str, seed: int = 0) -> None:
     """ValueError naming the first setting a fleet cannot run with (a rate <= 0 would never advance a robot's clock)."""
-    if isinstance(robots, bool) or not isinstance(robots, int) or robots < 1:
-        raise ValueError(f"robots: expected a positive integer, got {robots!r}")
+    if isinstance(robots, bool) or not isinstance(robots, int) or not 1 <= robots <= FLEET_MAX_ROBOTS:
+        raise ValueError(f"robots: expected a positive integer up to {FLEET_MAX_ROBOTS}, got {robots!r}")
     for name, value in (("hz", hz), ("duration", duration_s)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not positive_number(value):
             raise ValueError(f"{name}: expected a positive number, got {value!r}")
-    if hz > MAX_HZ:
+    if hz > FLEET_MAX_HZ:
         # A period below the monotonic clock's resolution never advanced a robot's next send: a hang.
-        raise ValueError(f"hz: expected at most {MAX_HZ:g} requests per second per robot, got {hz!r}")
+        raise ValueError(f"hz: expected at most {FLEET_MAX_HZ:g} requests per second per robot, got {hz!r}")
     if duration_s < 1 / hz:
         # Shorter, and a robot whose random start falls after the window sends nothing: a report of 0 sent.
         raise ValueError(f"duration: expected at least one period (1 / hz = {1 / hz:g} s), got {duration_s!r}")
