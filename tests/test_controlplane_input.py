@@ -149,6 +149,17 @@ def test_admin_errors_carry_a_code(plane, tmp_path):
     reply = request(address, "apply", config=yaml.safe_dump({**data, "engine": {"kind": "monolithic", "max_batch": 4}}))
     assert reply["kind"] == "error" and reply["code"] == "RESTART_REQUIRED" and "max_batch" in reply["message"], reply
     assert "control.headroom" in reply["message"] and "memory_gb" in reply["message"], reply  # what is live
+    # A change of imports is refused before the modules are imported: their code never runs in the plane (this one
+    # would write a file, and one that exits at import ended the plane).
+    marker = tmp_path / "imported"
+    (tmp_path / "side_effect_mod.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    sys.path.insert(0, str(tmp_path))
+    try:
+        reply = request(address, "apply", config=yaml.safe_dump({**data, "imports": ["side_effect_mod"]}))
+    finally:
+        sys.path.remove(str(tmp_path))
+    assert reply["kind"] == "error" and reply["code"] == "RESTART_REQUIRED" and "imports" in reply["message"], reply
+    assert not marker.exists()
     reply = request(address, "nonsense")
     assert reply["kind"] == "error" and reply["code"] == "BAD_REQUEST" and "nonsense" in reply["message"], reply
 

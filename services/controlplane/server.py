@@ -14,7 +14,7 @@ from services.controlplane.rollout import (LIVE_CONTROL_FIELDS, Rollout, Step, d
                                            restart_only_changes)
 from services.controlplane.state import ClusterState
 from shared import control
-from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_text, settings_digest
+from shared.config import ClusterConfig, ConfigError, ModelConfig, config_from_dict, parse_yaml, settings_digest
 from shared.control import ControlError
 from shared.metrics import ControlMetrics, serve
 from shared.protocol import ModelInfo, ProtocolError, shown
@@ -215,7 +215,17 @@ class ControlPlane:
                 # str() of anything else would be parsed as YAML and blamed on the operator's file.
                 raise BadRequest(f"config: expected the config file's text (a string), got {_kind_of(text)}")
             try:
-                new = config_from_text(text, "the applied file")
+                raw = parse_yaml(text)
+            except ConfigError as exc:
+                return self._error(peer, ControlError.BAD_CONFIG, f"config error: the applied file: {exc}")
+            # A change of imports is refused below anyway (restart only): decided before the new modules would be
+            # imported, so their code never runs in this process for an apply that changes nothing.
+            imports = raw.get("imports", []) if isinstance(raw, dict) else []
+            if isinstance(imports, list) and imports != st.cfg.imports:
+                return self._error(peer, ControlError.RESTART_REQUIRED, "imports take effect only on restart, so "
+                                   f"nothing was changed: imports: {st.cfg.imports!r} -> {imports!r}")
+            try:
+                new = config_from_dict(raw)
             except ConfigError as exc:
                 return self._error(peer, ControlError.BAD_CONFIG, f"config error: {exc}")
             fixed = restart_only_changes(st.cfg, new)
