@@ -195,7 +195,9 @@ def test_lockstep_results_equal_eager_single_and_co_located(policy):
     worst = _check(models, results, len(reqs))
     summary = eng.telemetry.summary()
     print(f"policy {policy}: worst relative error {worst:.2e}; telemetry {summary}")
-    assert summary["overlapping"] > 0
+    # Eager launching is CPU-bound (each stage's hundreds of kernels are issued from Python, about 20 ms here), so
+    # a stage has mostly run by the time the other's launch begins: both share locksteps, but seldom run at once.
+    assert summary["co_running"] > 0 if policy == "table-eager" else summary["overlapping"] > 0
     if policy.startswith("table"):
         assert set(summary["sm_levels"]) - {"None"}, "some lockstep should have run restricted"
 
