@@ -160,6 +160,8 @@ def test_admin_errors_carry_a_code(plane, tmp_path):
         sys.path.remove(str(tmp_path))
     assert reply["kind"] == "error" and reply["code"] == "RESTART_REQUIRED" and "imports" in reply["message"], reply
     assert not marker.exists()
+    reply = request(address, "apply", config=yaml.safe_dump({**data, "imports": [5]}))  # malformed: not a restart
+    assert reply["kind"] == "error" and reply["code"] == "BAD_CONFIG" and "imports[0]" in reply["message"], reply
     reply = request(address, "nonsense")
     assert reply["kind"] == "error" and reply["code"] == "BAD_REQUEST" and "nonsense" in reply["message"], reply
 

@@ -292,3 +292,12 @@ def test_a_model_that_misses_its_deadline_with_one_robot_gets_no_limit(tmp_path,
     cache = Path(cfg.control.state_dir) / "limits.json"
     assert not cache.exists() or json.loads(cache.read_text()) == {}
     assert any("not even 1 robot" in r.getMessage() for r in caplog.records)
+    # A 1 cached by the code before (its own points show the miss) is measured again, not trusted.
+    key = limit_key(device_name(CPU), "toy", "tiny", 2.0, cfg.engine.max_batch, 0.001, cfg.engine.kind,
+                    cfg.control.limits.target)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(json.dumps({key: {"limit": 1, "max_robots": 4, "points": [{"robots": 1, "slo_attainment": 0.0}]}}))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="robion.executor"):
+        assert measure_limits(cfg, "ex0", hosted.models, CPU) == {}
+    assert any("missed the target at that count" in r.getMessage() for r in caplog.records)

@@ -297,3 +297,18 @@ def test_a_sink_that_fails_on_the_shed_answers_does_not_lose_the_batch_taken_wit
                                noise=model.noise(1)[0].numpy()))
     assert eng.step()
     assert answered == ["fine"]
+
+
+def test_peek_leaves_the_service_estimate_as_it_was():
+    """peek read the estimate through a call that dropped a stale window, so whether a prestage happened to peek
+    between two replies changed what shed_late would shed (0.05 s without a peek, 0.01 with one)."""
+    estimates = []
+    for peek in (False, True):
+        q = ModelQueues(["a"], policy="esf", shed_late=True)
+        q.note_service("a", 0.05, now=1.0)
+        q.put(req("a", "a1", 2.4, 9.0))
+        if peek:
+            assert q.peek(2, now=2.5)[0] == "a"
+        q.note_service("a", 0.01, now=2.6)  # after a gap longer than STALE_S: a fresh window either way
+        estimates.append(q.service_estimate("a", now=2.6))
+    assert estimates == [pytest.approx(0.01), pytest.approx(0.01)]

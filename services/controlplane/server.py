@@ -221,7 +221,7 @@ class ControlPlane:
             # A change of imports is refused below anyway (restart only): decided before the new modules would be
             # imported, so their code never runs in this process for an apply that changes nothing.
             imports = raw.get("imports", []) if isinstance(raw, dict) else []
-            if isinstance(imports, list) and imports != st.cfg.imports:
+            if isinstance(imports, list) and all(isinstance(n, str) for n in imports) and imports != st.cfg.imports:
                 return self._error(peer, ControlError.RESTART_REQUIRED, "imports take effect only on restart, so "
                                    f"nothing was changed: imports: {st.cfg.imports!r} -> {imports!r}")
             try:

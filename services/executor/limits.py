@@ -101,6 +101,14 @@ def cached_limit(entry: object) -> int | None:
     return int(limit) if limit > 0 else None
 
 
+def _failed_at(entry: dict, limit: int, target: float) -> bool:
+    """Whether the cached search's own points show ``limit`` robots below ``target`` (entries without points pass)."""
+    points = entry.get("points") if isinstance(entry, dict) else None
+    at = [p.get("slo_attainment") for p in points if isinstance(p, dict) and p.get("robots") == limit] \
+        if isinstance(points, list) else []
+    return any(isinstance(a, (int, float)) and a < target for a in at)
+
+
 def owned_models(cfg: ClusterConfig, executor: str, hosted: list[str]) -> list[str]:
     """Models this executor measures: those it is the first executor in the config to host."""
     first: dict[str, str] = {}
@@ -137,7 +145,11 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
         if key in known:
             limit = cached_limit(known[key])
             cap = known[key].get("max_robots") if isinstance(known[key], dict) else None
-            if limit is not None and name in owned and isinstance(cap, int) and limit >= cap and cap < lc.max_robots:
+            if limit is not None and _failed_at(known[key], limit, lc.target):
+                # Written before a search that found no count meeting the target cached nothing: it cached 1.
+                log.warning("%s: the cached limit %d of %s missed the target at that count; measuring it again",
+                            cache.path, limit, key)
+            elif limit is not None and name in owned and isinstance(cap, int) and limit >= cap and cap < lc.max_robots:
                 # The search stopped at its cap, not at the GPU's limit: a higher cap may find more.
                 log.info("%s: the cached limit %d of %s was the search's cap; measuring again up to %d",
                          cache.path, limit, key, lc.max_robots)

@@ -106,8 +106,11 @@ class ServiceTimes:
         self._last = float("-inf")
 
     def note(self, seconds: float, now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        if now - self._last > self.STALE_S:  # a stale window is dropped: this reply starts a fresh one
+            self._recent.clear()
         self._recent.append(seconds)
-        self._last = time.monotonic() if now is None else now
+        self._last = now
         ordered = sorted(self._recent)
         self._estimate = ordered[min(len(ordered) - 1, int(self.QUANTILE * len(ordered)))]
 
@@ -117,11 +120,10 @@ class ServiceTimes:
         self._last = float("-inf")
 
     def estimate(self, now: float | None = None) -> float:
-        """0 until a reply has been seen, and again once the last one is older than STALE_S."""
+        """0 until a reply has been seen, and again once the last one is older than STALE_S. Reads only (the
+        scheduler's side-effect-free peek asks it too)."""
         now = time.monotonic() if now is None else now
-        if now - self._last > self.STALE_S:
-            self.clear()
-        return self._estimate
+        return 0.0 if now - self._last > self.STALE_S else self._estimate
 
 
 def _cannot_make_it(req: Request, now: float, service_s: float) -> bool:

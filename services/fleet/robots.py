@@ -157,9 +157,10 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
             for _, comp in wait_any(clients, wait):
                 done[comp.request_id] = comp
     finally:
-        for c in clients:  # an open socket would hold the context's term() for good
+        for c in clients:
             c.close()
-        ctx.term()
+        # destroy, not term: a socket left open (a Ctrl-C inside a client's construction) held term() for good.
+        ctx.destroy(linger=0)
 
     reports = {}
     for model in models:

@@ -785,7 +785,7 @@ def norm_linear(x: torch.Tensor, norm_w: torch.Tensor | None, eps: float, weight
     if not fast_gemm_ok(x, rows):
         return _norm_linear_ref(x, norm_w, eps, weight, bias)
     k = x.shape[-1]
-    x2 = x.reshape(rows, k)
+    x2, weight = unit_last(x.reshape(rows, k)), unit_last(weight)
     n = weight.shape[0]
     out = torch.empty(rows, n, device=x.device, dtype=x.dtype)
     bm = _block_m(rows)
@@ -807,7 +807,7 @@ def norm_gated_mlp_in(x: torch.Tensor, norm_w: torch.Tensor | None, eps: float, 
     if not fast_gemm_ok(x, rows):
         return _gated_act_ref(_norm_linear_ref(x, norm_w, eps, weight, None), act)
     k = x.shape[-1]
-    x2 = x.reshape(rows, k)
+    x2, weight = unit_last(x.reshape(rows, k)), unit_last(weight)
     f = weight.shape[0] // 2
     out = torch.empty(rows, f, device=x.device, dtype=x.dtype)
     bm = _block_m(rows)
@@ -833,6 +833,7 @@ def norm_qkv(x: torch.Tensor, norm_w: torch.Tensor, eps: float, weight: torch.Te
         qkv = _norm_linear_ref(x, norm_w, eps, weight, None)
         return _split_qkv_ref(qkv, n_q, n_kv, head_dim, cos, sin, None, None, eps, k_out, v_out)
     assert weight.shape[0] == (n_q + 2 * n_kv) * head_dim and x.stride(2) == 1 and x.stride(0) == s * x.stride(1)
+    weight = unit_last(weight)
     q = torch.empty(b, s, n_q, head_dim, device=x.device, dtype=x.dtype)
     if n_kv == 0:
         k_out = v_out = q

@@ -420,3 +420,11 @@ def test_kernels_take_views_whose_last_dim_is_strided():
     ref = F.scaled_dot_product_attention(q.double(), kk.double(), vv.double())
     assert _rel(fused.small_attention(q, kk, vv, None), ref) < 1e-2
     assert _rel(fused.small_attention(q, kk, vv, None, fused.Workspace(torch.device("cuda"))), ref) < 1e-2
+    # The norm-folded GEMMs (bench experiments): a transposed weight and activation (norm_w None: no norm).
+    k, n = 1024, 2048
+    x = torch.randn(k, rows, device="cuda", generator=g).bfloat16().t()
+    w = (torch.randn(k, n, device="cuda", generator=g) / k ** 0.5).bfloat16().t()
+    ref = x.double() @ w.double().t()
+    assert _rel(fused.norm_linear(x, None, 1e-6, w), ref) < 1e-2
+    gate, up = ref.chunk(2, dim=-1)
+    assert _rel(fused.norm_gated_mlp_in(x, None, 1e-6, w, "silu"), F.silu(gate) * up) < 1e-2
