@@ -98,12 +98,28 @@ def stop_event(parent_pid: int = 0) -> threading.Event:
 
 
 def watch_parent(parent_pid: int, on_gone: Callable[[], None], stop: threading.Event | None = None) -> None:
-    """Call ``on_gone`` once the launching process ``parent_pid`` is gone (checked every 0.5 s until ``stop``)."""
+    """Call ``on_gone`` once the launching process ``parent_pid`` is gone (checked every 0.5 s until ``stop``).
+
+    A child of the launcher watches its parent pid (a reused pid cannot fool that). A process started by hand with
+    the launcher's --parent-pid (an executor restarted under a running `robion up`, with the command line `ps`
+    showed) is no child of it: it watches that the pid exists. It used to take "not my parent" for "gone" and quit."""
     stop = stop or threading.Event()
+    child = os.getppid() == parent_pid
+
+    def alive() -> bool:
+        if child:
+            return os.getppid() == parent_pid
+        try:
+            os.kill(parent_pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:  # exists, under another user
+            return True
+        return True
 
     def watch() -> None:
         while not stop.wait(0.5):
-            if os.getppid() != parent_pid:
+            if not alive():
                 logging.getLogger("robion").warning("launcher %d is gone: shutting down", parent_pid)
                 on_gone()
                 return

@@ -75,3 +75,24 @@ def test_service_stopped_during_start_up_exits_cleanly(tmp_path, service, sig):
     rc, err = signal_while_loading_config(tmp_path, *SERVICES[service][:1], sig, *SERVICES[service][1:])
     assert rc == 0, f"exit status {rc}\n{err[-3000:]}"
     assert f"signal {int(sig)}: shutting down" in err, err[-3000:]
+
+
+def test_a_service_started_by_hand_under_a_running_launcher_stays_until_the_launcher_goes():
+    """An executor restarted by hand under a running `robion up`, with the command line `ps` showed, is no child of
+    the launcher: it took "not my parent" for "launcher gone" and shut down within a second."""
+    import threading
+
+    from shared.service import watch_parent
+
+    launcher = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    gone, stop = threading.Event(), threading.Event()
+    try:
+        watch_parent(launcher.pid, gone.set, stop)
+        assert not gone.wait(1.5)  # three checks: the launcher lives, though it is not our parent
+        launcher.kill()
+        launcher.wait()
+        assert gone.wait(5)
+    finally:
+        stop.set()
+        if launcher.poll() is None:
+            launcher.kill()
