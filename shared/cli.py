@@ -117,8 +117,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     try:  # the fleet would refuse them too, but only once the cluster had started
         check_settings(f.robots, f.hz, f.duration_s, f.network, f.seed)
     except ValueError as exc:
-        key, _, why = str(exc).partition(":")  # check_settings names the fleet CLI's options
-        print(f"robion demo: fleet.{ {'duration': 'duration_s'}.get(key, key)}:{why}", file=sys.stderr)
+        key, _, why = str(exc).partition(":")  # check_settings names the fleet CLI's --duration, the config duration_s
+        print(f"robion demo: fleet.{'duration_s' if key == 'duration' else key}:{why}", file=sys.stderr)
         return 2
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
     # A stop (Ctrl-C, SIGTERM) at any point stops the fleet and the cluster, as `robion up` does.

@@ -104,9 +104,10 @@ def cached_limit(entry: object) -> int | None:
 def _failed_at(entry: dict, limit: int, target: float) -> bool:
     """Whether the cached search's own points show ``limit`` robots below ``target`` (entries without points pass)."""
     points = entry.get("points") if isinstance(entry, dict) else None
-    at = [p.get("slo_attainment") for p in points if isinstance(p, dict) and p.get("robots") == limit] \
-        if isinstance(points, list) else []
-    return any(isinstance(a, (int, float)) and a < target for a in at)
+    if not isinstance(points, list):
+        return False
+    return any(isinstance(p, dict) and p.get("robots") == limit and isinstance(p.get("slo_attainment"), (int, float))
+               and p["slo_attainment"] < target for p in points)
 
 
 def owned_models(cfg: ClusterConfig, executor: str, hosted: list[str]) -> list[str]:
