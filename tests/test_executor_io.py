@@ -151,8 +151,11 @@ def test_executor_keeps_serving_and_leaves_while_the_control_plane_is_unreachabl
     cannot be delivered, but robots must still be answered and SIGTERM must still end the
     process. ZeroMQ queues 1000 undeliverable messages, then a blocking send waits forever."""
     (dead,) = free_ports(1)
-    h = harness(control={"bind": f"tcp://127.0.0.1:{dead}", "heartbeat_s": 1e-6, "missed_heartbeats": 5,
+    h = harness(control={"bind": f"tcp://127.0.0.1:{dead}", "heartbeat_s": 0.01, "missed_heartbeats": 5,
                          "metrics_port": 0})
+    # Below the config's floor (0.01 s), set on the loaded config the I/O loop reads: a heartbeat on every turn of
+    # the loop, so well past ZeroMQ's 1000 queued messages within the test.
+    h.io.cfg.control.heartbeat_s = 1e-6
     ids = []
     for i in range(1500):  # every turn of the I/O loop sends a heartbeat: well past 1000 of them
         ids.append(i)
