@@ -329,7 +329,7 @@ class Router:
                 if exc.errno == zmq.EHOSTUNREACH:  # registered but not connected to us (yet / any more)
                     continue
                 raise
-            info = self.routing.table.models.get(model)
+            # info: the table's entry for the model as the request arrived (above), before it went out.
             self.in_flight[key] = InFlight(executor, model, time.monotonic(),
                                            info.deadline_ms / 1e3 if info is not None else None)
             self.metrics.in_flight.set(len(self.in_flight))
