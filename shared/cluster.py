@@ -15,7 +15,7 @@ from typing import Callable
 import zmq
 
 from shared import control
-from shared.config import ClusterConfig, ConfigError, dial_address, positive_number
+from shared.config import ClusterConfig, ConfigError, bound_addresses, dial_address, positive_number
 from shared.service import bind, connect
 
 log = logging.getLogger("robion.cluster")
@@ -71,8 +71,7 @@ def addresses_taken(cfg: ClusterConfig) -> list[str]:
     takes it from whoever holds it.)"""
     ctx = zmq.Context.instance()
     problems = []
-    for key, address in (("router.bind", cfg.router.bind), ("router.backend", cfg.router.backend),
-                         ("control.bind", cfg.control.bind)):
+    for key, address in bound_addresses(cfg):
         if not address.startswith("tcp://"):
             continue
         sock = ctx.socket(zmq.ROUTER)

@@ -437,6 +437,11 @@ def _unique_names(names: list[str], path: str) -> set[str]:
     return seen
 
 
+def bound_addresses(cfg: ClusterConfig) -> list[tuple[str, str]]:
+    """(config key, address) of every address the cluster's services bind: the router's two and the control plane's."""
+    return [("router.bind", cfg.router.bind), ("router.backend", cfg.router.backend), ("control.bind", cfg.control.bind)]
+
+
 def executor_name_problem(name: str) -> str | None:
     """What keeps ``name`` from naming an executor, if anything. It is the executor's ZeroMQ socket identity: at most
     255 bytes, and one starting with a zero byte is reserved by ZeroMQ (either failed only when the executor bound
@@ -507,8 +512,7 @@ def _validate(cfg: ClusterConfig, folder: Path | None = None) -> None:
         if m.name not in hosted:
             raise ConfigError(f"models[{i}]: model {m.name!r} is placed on no executor")
     binds = {}
-    for key, address in (("router.bind", cfg.router.bind), ("router.backend", cfg.router.backend),
-                         ("control.bind", cfg.control.bind)):
+    for key, address in bound_addresses(cfg):
         if address in binds:  # else the second service to start failed to bind, as if another cluster held it
             raise ConfigError(f"{key}: {address} is {binds[address]} too; each service binds an address of its own")
         binds[address] = key

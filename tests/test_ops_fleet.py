@@ -58,16 +58,19 @@ class HalfDeafRouter:
         self.sock.close()
         self.ctx.term()
 
+    def __enter__(self) -> "HalfDeafRouter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
 
 def test_lost_replies_are_no_reply_also_after_the_client_timeout():
     (port,) = free_ports(1)
-    router = HalfDeafRouter(f"tcp://127.0.0.1:{port}")
-    try:
+    with HalfDeafRouter(f"tcp://127.0.0.1:{port}") as router:
         # drain_s past the SDK's 10 s reply timeout: the lost replies surface as RequestTimeout in the
         # run, which the report counted as the router's UNAVAILABLE answers.
         report = run_fleet(f"tcp://127.0.0.1:{port}", robots=2, hz=4, duration_s=0.5, drain_s=12, network="none")
-    finally:
-        router.close()
     r = report.models["toy-a"]
     assert router.answered > 0 and router.dropped > 0
     assert r.sent == router.answered + router.dropped and r.replies == 0 and r.slo_attainment == 0
@@ -91,14 +94,11 @@ def test_json_report_of_a_model_with_no_replies_is_strict_json(tmp_path):
 
     path, _ = cluster_config(tmp_path)
     (port,) = free_ports(1)
-    router = HalfDeafRouter(f"tcp://127.0.0.1:{port}")
     out = tmp_path / "report.json"
-    try:
+    with HalfDeafRouter(f"tcp://127.0.0.1:{port}"):
         res = subprocess.run([sys.executable, "-m", "services.fleet.main", "-c", str(path), "--address",
                               f"tcp://127.0.0.1:{port}", "--robots", "2", "--duration", "0.5", "--json", str(out)],
                              capture_output=True, text=True, cwd=ROOT, timeout=60)
-    finally:
-        router.close()
     assert res.returncode == 0, res.stderr
 
     def refuse(constant):
@@ -128,12 +128,9 @@ def test_a_request_that_cannot_be_sent_fails_alone_and_idle_models_are_not_repor
     ended the whole run with no report; it is now that request's failure. A model no robot was spread to
     (fewer robots than models) was reported at 0% SLO attainment for requests never sent."""
     (port,) = free_ports(1)
-    router = TwoModelRouter(f"tcp://127.0.0.1:{port}")
-    try:
+    with TwoModelRouter(f"tcp://127.0.0.1:{port}") as router:
         report = run_fleet(f"tcp://127.0.0.1:{port}", robots=2, hz=4, duration_s=0.5, network="none",
                            models=["toy-a", "toy-wide", "toy-z"])
-    finally:
-        router.close()
     assert set(report.models) == {"toy-a", "toy-wide"}
     a, wide = report.models["toy-a"], report.models["toy-wide"]
     assert a.sent == router.answered > 0 and a.errors == {"UNAVAILABLE": a.sent}
@@ -166,11 +163,8 @@ def test_latency_counts_from_the_scheduled_send_and_a_late_sender_is_reported(tm
 
     monkeypatch.setattr(RobotClient, "submit", slow_submit)
     (port,) = free_ports(1)
-    router = Answering(f"tcp://127.0.0.1:{port}")
-    try:
+    with Answering(f"tcp://127.0.0.1:{port}"):
         report = run_fleet(f"tcp://127.0.0.1:{port}", robots=4, hz=10, duration_s=1.0, network="none")
-    finally:
-        router.close()
     r = report.models["toy-a"]
     assert r.replies == r.sent > 0 and r.send_lag_max_ms > 50
     assert r.p99_ms >= r.send_lag_p99_ms  # each request's latency includes how late it left
@@ -189,11 +183,11 @@ def test_a_fleet_of_more_robots_than_a_default_zmq_context_allows_runs():
         pytest.skip(f"the open-files limit of this host is {hard}")
     resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, need), hard))
     (port,) = free_ports(1)
-    router = HalfDeafRouter(f"tcp://127.0.0.1:{port}")
     try:
-        report = run_fleet(f"tcp://127.0.0.1:{port}", robots=1100, hz=1, duration_s=1.0, drain_s=0.5, network="none")
+        with HalfDeafRouter(f"tcp://127.0.0.1:{port}"):
+            report = run_fleet(f"tcp://127.0.0.1:{port}", robots=1100, hz=1, duration_s=1.0, drain_s=0.5,
+                               network="none")
     finally:
-        router.close()
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
     r = report.models["toy-a"]
     assert r.robots == 1100 and r.sent == 1100
