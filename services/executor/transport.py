@@ -309,14 +309,18 @@ class ExecutorIO:
         now = time.monotonic()
         if now - self._last_beat >= self.cfg.control.heartbeat_s:
             self._last_beat = now
-            self._ctl_connected()  # reads the monitor's events as they come, so they never pile up
+            # Reads the monitor's events as they come, so they never pile up. A heartbeat to a plane that is down is
+            # skipped: queued, the outage's whole backlog would reach a restarted plane at once, and it asks an
+            # executor it does not know to re-register once per heartbeat.
+            plane_up = self._ctl_connected()
             if self.slot.failed() and not self.fatal.is_set():
                 # Registered and heartbeating, it would refuse its whole share of the fleet: leave for a restart.
                 log.critical("the engine's loop ended on a fault; leaving routing and exiting for a restart")
                 self.fatal_reason = "the engine's loop ended on a fault"
                 self.fatal.set()
             depths = self.slot.depths()
-            self._ctl_send("heartbeat", executor=self.name, depths=depths)
+            if plane_up:
+                self._ctl_send("heartbeat", executor=self.name, depths=depths)
             self._update_gauges(depths)
 
     def _ctl_reply(self, kinds: tuple[str, ...], timeout_s: float) -> dict | None:
@@ -594,9 +598,9 @@ class ExecutorIO:
                 self.metrics.observe_batch(model, size)
 
     def _on_request(self, frames: list[zmq.Frame]) -> None:
-        arrival = self._last_request = time.monotonic()
         if len(frames) < 2:
-            return
+            return  # the router's probe of our connection (one empty frame): not a request
+        arrival = self._last_request = time.monotonic()
         envelope = frames[0].bytes
         body = [f.buffer for f in frames[1:]]
         rid = ""
