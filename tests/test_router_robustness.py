@@ -118,6 +118,8 @@ class RouterThread:
                 if not sock.poll(50):
                     continue
                 robot, *body = sock.recv_multipart()
+                if not body:
+                    continue  # the router's probe of the connection, after another executor's closed
                 try:
                     req = decode(body)
                 except ProtocolError as exc:  # as the executor does: an error reply with the request's id

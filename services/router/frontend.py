@@ -21,7 +21,7 @@ from shared.control import RoutingTable, TableError
 from shared.metrics import RouterMetrics, serve
 from shared.protocol import (MAX_ID_CHARS, ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode,
                              error_frames, header_id, max_frames, message_bytes, shown, unpack_header)
-from shared.service import bind, connect, connected_again
+from shared.service import bind, connect, connected_again, monitor_events
 
 log = logging.getLogger("robion.router")
 
@@ -36,6 +36,11 @@ TABLE_POLL_RETRY_S = 1.0
 PIN_SWEEP_S = 5.0  # how often silent robots' pins are released (routing.PIN_IDLE_S)
 SHUTDOWN_LINGER_MS = 1000  # at shutdown, how long the last answers may take to leave
 WARN_EVERY_S = 5.0  # refusals a peer can trigger at will are logged at most this often, with a count
+# After an executor's connection closes (the socket's monitor names no identity), each executor with requests in flight
+# is probed this long, every sweep: one empty frame, which executors ignore. ROUTER_MANDATORY refuses it for an identity
+# whose connection is gone, and its requests are answered at once. The identity's pipe may outlive the event by a
+# moment, hence the repeats.
+PROBE_AFTER_DISCONNECT_S = 1.0
 
 # A request in flight: (robot, id type, id). The id keeps its wire type, so 7 and "7" from one
 # robot are two requests; the type is in the key so that stays true whatever the ids compare as.
@@ -102,6 +107,11 @@ class Router:
         self.backend.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.backend.setsockopt(zmq.LINGER, 0)
         bind(self.backend, cfg.router.backend, "router.backend")
+        # An executor's connection closing (it crashed, or its host went away) is reported here. Without it its requests
+        # in flight waited for the control plane to notice its missing heartbeats (seconds), or, with the plane down too,
+        # for request_timeout_s.
+        self.backend_events = self.backend.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self._probe_until = 0.0
 
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.LINGER, 0)
@@ -131,7 +141,7 @@ class Router:
 
     def run(self, stop: threading.Event) -> None:
         poller = zmq.Poller()
-        for s in (self.frontend, self.backend, self.ctl, self.ctl_events):
+        for s in (self.frontend, self.backend, self.ctl, self.ctl_events, self.backend_events):
             poller.register(s, zmq.POLLIN)
         while not stop.is_set():
             now = time.monotonic()
@@ -154,6 +164,8 @@ class Router:
             if now - self._last_sweep >= 0.1:
                 self._last_sweep = now
                 self._expire(now)
+                if now < self._probe_until:
+                    self._probe_executors()
             if now - self._last_pin_sweep >= PIN_SWEEP_S:
                 self._last_pin_sweep = now
                 released = self.routing.release_idle(now)
@@ -162,6 +174,11 @@ class Router:
             for sock, _ in poller.poll(50):
                 if sock is self.ctl_events:
                     self._control_connected()
+                    continue
+                if sock is self.backend_events:
+                    if monitor_events(self.backend_events):
+                        self._probe_until = time.monotonic() + PROBE_AFTER_DISCONNECT_S
+                        self._probe_executors()
                     continue
                 # Drain each ready socket a bounded number of times so one side cannot starve the other.
                 for _ in range(256):
@@ -197,6 +214,8 @@ class Router:
         # (zeromq/libzmq#3442), aborting the process.
         self.ctl.disable_monitor()
         self.ctl_events.close(linger=0)
+        self.backend.disable_monitor()
+        self.backend_events.close(linger=0)
         self.ctl.close(linger=0)
         for s in (self.backend, self.frontend):
             s.close(linger=SHUTDOWN_LINGER_MS)
@@ -385,6 +404,18 @@ class Router:
                               f.model)
         if stale:
             self.metrics.in_flight.set(len(self.in_flight))
+
+    def _probe_executors(self) -> None:
+        """Fail the requests in flight to each executor whose connection is gone (see PROBE_AFTER_DISCONNECT_S)."""
+        for executor in {f.executor for f in self.in_flight.values()}:
+            try:
+                self.backend.send_multipart([executor.encode(), b""], flags=zmq.NOBLOCK)
+            except zmq.Again:
+                pass  # connected, its pipe full: a stalled executor is request_timeout_s's to answer for
+            except zmq.ZMQError as exc:
+                if exc.errno != zmq.EHOSTUNREACH:
+                    raise
+                self._fail_executor(executor, "closed its connection")
 
     def _fail_executor(self, executor: str, reason: str = "went away") -> None:
         """Answer every request in flight to ``executor`` UNAVAILABLE: it will never answer them."""
