@@ -119,7 +119,11 @@ def decode_array(ref: Any, frames: Sequence[Frame], where: str, used: set[int] |
     if len(buf) != nbytes:
         raise ProtocolError(ErrorCode.BAD_REQUEST,
                             f"{where}: shape {list(shape)} of {dtype} needs {nbytes} bytes, got {len(buf)}")
-    return np.frombuffer(buf, dtype=np_dtype).reshape(shape)
+    try:
+        return np.frombuffer(buf, dtype=np_dtype).reshape(shape)
+    except ValueError:  # a zero dim beside dims numpy cannot hold, e.g. [0, 2**31-1, 2**31-1, 2**31-1]: 0 bytes match
+        raise ProtocolError(ErrorCode.BAD_REQUEST,
+                            f"{where}: shape {list(shape)} is beyond what an array can hold") from None
 
 
 # ----------------------------------------------------------------------------- messages

@@ -58,6 +58,10 @@ def tamper(frames, fn):
     (lambda h: h["obs"]["images"]["base"].update(shape=[224, 224, 4]), "needs"),
     (lambda h: h["obs"]["images"]["base"].update(shape=[2**30, 2**30, 3]), "needs"),
     (lambda h: h["obs"]["images"]["base"].update(shape="big"), "shape"),
+    # Zero bytes, as declared, but dims numpy cannot hold: reshape's ValueError answered INTERNAL ("retry") with a
+    # traceback in the executor's log, and a reply shaped so failed the SDK's poll() with a bare ValueError.
+    (lambda h: h["obs"].update(state={"dtype": "float32", "shape": [0, 2**31 - 1, 2**31 - 1, 2**31 - 1], "data": b""}),
+     "beyond what an array can hold"),
     (lambda h: h["obs"]["images"]["base"].update(frame=7), "frame"),
     (lambda h: h["obs"]["images"]["wrist"].update(frame=1), "twice"),
     (lambda h: h["obs"].pop("state"), "state: missing"),
