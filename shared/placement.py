@@ -71,11 +71,23 @@ def _folded_params(model) -> int:
     return n
 
 
-def executor_bytes(cfg: ClusterConfig, executor: str) -> int:
-    ex = cfg.executor(executor)
+def models_bytes(cfg: ClusterConfig, models: list[str]) -> int:
+    """Device memory one executor hosting ``models`` needs, CUDA context included."""
     # Fine-tuned variants of one architecture still hold their own weights.
     return CONTEXT_OVERHEAD + sum(model_bytes(cfg.model(m).arch, cfg.model(m).size, cfg.engine.max_batch)
-                                  for m in ex.models)
+                                  for m in models)
+
+
+def memory_shortfall(cfg: ClusterConfig, executor: str, models: list[str], have: int) -> str | None:
+    """Why ``models`` do not fit in ``have`` bytes on ``executor``; None when they fit."""
+    need = models_bytes(cfg, models)
+    if need <= have:
+        return None
+    per = ", ".join(f"{m} {model_bytes(cfg.model(m).arch, cfg.model(m).size, cfg.engine.max_batch) / GIB:.1f}"
+                    for m in models)
+    return (f"the models placed on {executor} need about {need / GIB:.1f} GiB ({per} GiB, plus "
+            f"{CONTEXT_OVERHEAD / GIB:.0f} GiB for the CUDA context) but it has {have / GIB:.1f} GiB: place fewer "
+            "models there, or add a GPU")
 
 
 def check_fit(cfg: ClusterConfig, free_bytes: dict[str, int] | None = None) -> None:
@@ -90,10 +102,6 @@ def check_fit(cfg: ClusterConfig, free_bytes: dict[str, int] | None = None) -> N
             have = int(ex.memory_gb * GIB)
         if have is None:
             continue
-        need = executor_bytes(cfg, ex.name)
-        if need > have:
-            per = ", ".join(f"{m} {model_bytes(cfg.model(m).arch, cfg.model(m).size, cfg.engine.max_batch) / GIB:.1f}"
-                            for m in ex.models)
-            raise ConfigError(f"executors[{j}].models: the models placed on {ex.name} need about {need / GIB:.1f} GiB "
-                              f"({per} GiB, plus {CONTEXT_OVERHEAD / GIB:.0f} GiB for the CUDA context) but it has "
-                              f"{have / GIB:.1f} GiB: place fewer models there, or add a GPU")
+        short = memory_shortfall(cfg, ex.name, ex.models, have)
+        if short is not None:
+            raise ConfigError(f"executors[{j}].models: {short}")

@@ -11,9 +11,9 @@ from services.executor.engine import resolve_kind
 from services.executor.hosting import EngineSlot, ModelStore
 from services.executor.limits import measure_limits
 from services.executor.transport import ExecutorIO
-from shared.config import ClusterConfig, ConfigError, ExecutorConfig, executor_name_problem, parse_devices, valid_device
+from shared.config import ClusterConfig, ExecutorConfig, executor_name_problem, parse_devices, valid_device
 from shared.metrics import ExecutorMetrics, serve
-from shared.placement import check_fit
+from shared.placement import memory_shortfall
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
 
 log = logging.getLogger("robion.executor")
@@ -92,12 +92,14 @@ def main(argv: list[str] | None = None) -> int:
             log.error("ROBION_CPU_THREADS: expected a positive integer, got %r", threads)
             return 2
 
-    if device.type == "cuda" and any(e.name == args.name for e in cfg.executors):
+    if device.type == "cuda":
+        # The device's free memory, not the config's memory_gb: other processes may hold some of it. A replica
+        # (--models, e.g. scaled out by docker-compose) is checked as well as a configured executor.
         free, _ = torch.cuda.mem_get_info(device)
-        try:
-            check_fit(cfg, {args.name: free})
-        except ConfigError as exc:
-            log.error("%s", exc)
+        short = memory_shortfall(cfg, args.name, ex_cfg.models, free)
+        if short is not None:
+            index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), None)
+            log.error("%s: %s", "--models" if index is None else f"executors[{index}].models", short)
             return 2
     store = ModelStore(device)
     try:

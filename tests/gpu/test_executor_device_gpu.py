@@ -19,3 +19,19 @@ def test_a_gpu_index_past_the_hosts_stops_the_executor_with_the_device_named(tmp
     assert f"device cuda:{count}: this host shows {count} CUDA GPU(s), cuda:0 to cuda:{count - 1}" in res.stderr, \
         res.stderr[-2000:]
     assert "Traceback" not in res.stderr, res.stderr[-2000:]
+
+
+@pytest.mark.parametrize("replica", [False, True], ids=["configured", "replica"])
+def test_models_beyond_the_gpus_free_memory_stop_the_executor_before_loading(tmp_path, replica):
+    """Twelve full-size XR0 models (about 11 GiB each by the estimate) cannot fit any GPU: the executor exits 2
+    naming its models before it loads one. A replica scaled out with --models (as docker-compose does) used to skip
+    the check and run out of memory part-way through loading."""
+    models = [{"name": f"xr0-{i}", "arch": "xr0", "size": "full", "seed": i, "slo_ms": 117} for i in range(12)]
+    names = [m["name"] for m in models]
+    path, _ = cluster_config(tmp_path, models=models, executors=[{"name": "g0", "device": "cuda:0", "models": names}])
+    args = ("--name", "rep0", "--models", ",".join(names)) if replica else ("--name", "g0")
+    res = executor_exit(path, *args, timeout_s=300)
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    where = "--models" if replica else "executors[0].models"
+    assert f"{where}: the models placed on {'rep0' if replica else 'g0'} need about" in res.stderr, res.stderr[-2000:]
+    assert "but it has" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
