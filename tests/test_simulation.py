@@ -17,9 +17,10 @@ from services.executor.engine import Engine, ServedModel
 from services.executor.scheduler import Result
 from services.executor.simulation import (CapacitySearch, EngineHost, Point, RobotGroup, SimConfig, SweepSearch,
                                           compare_capacity, engine_factory, find_capacity, make_schedule,
-                                          simulate, sweep)
+                                          measure_point, simulate, sweep)
 from shared.config import EngineConfig
 from shared.models import build_model
+from shared.protocol import ErrorCode
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CPU = torch.device("cpu")
@@ -140,6 +141,45 @@ def test_unanswered_requests_are_misses(toy):
     s = res.models["toy"]
     assert s.sent > 0 and s.no_reply == s.sent and s.misses == s.sent and s.slo_attainment == 0.0
     assert math.isnan(s.p99_ms) and res.to_dict()["models"]["toy"]["p99_ms"] is None
+
+
+class FixedFailuresEngine(Engine):
+    """Answers each request at once, failing the first ``failures[epoch]`` of each epoch (one run() per epoch)."""
+
+    def __init__(self, models, cfg, device, on_results, failures: list[int]):
+        super().__init__(models, cfg, device, on_results)
+        self.failures = failures
+        self.epoch, self.seen = -1, 0
+
+    def run(self, stop) -> None:
+        self.epoch, self.seen = self.epoch + 1, 0
+        super().run(stop)
+
+    def step(self) -> bool:
+        _, batch, _ = self.queues.take(self.cfg.max_batch)
+        io = self.models["toy"].model.io
+        results = []
+        for r in batch:
+            self.seen += 1
+            fail = self.seen <= self.failures[self.epoch]
+            results.append(Result(r, error=(ErrorCode.INTERNAL, "injected")) if fail
+                           else Result(r, actions=np.zeros((io.horizon, io.action_dim), np.float32)))
+        if results:
+            self.on_results(results)
+        return bool(batch)
+
+
+@pytest.mark.parametrize("early_stop", [False, True])
+def test_a_point_exactly_at_the_target_passes(toy, early_stop):
+    """100 requests an epoch, attainments 0.95, 0.98, 1.0, 0.97, 1.0: a mean of exactly 0.98, which the float sum makes
+    0.9799999999999999. The point failed at a 0.98 target, and the early stop ended it after 4 epochs, its best
+    possible mean (3.9 + 1) / 5 computed as below 0.98."""
+    cfg = EngineConfig(max_batch=1, shed_expired=False)
+    host = EngineHost(lambda sink: FixedFailuresEngine(served(toy, 1000), cfg, CPU, sink, [5, 2, 0, 3, 0]))
+    p = measure_point(host, "toy", 1, 100.0, SimConfig(epochs=5, duration_s=1.0, drain_s=0.0, network="none"), 0.98,
+                      early_stop=early_stop)
+    assert p.epoch_slo_attainment == [0.95, 0.98, 1.0, 0.97, 1.0], p.epoch_slo_attainment
+    assert p.epochs == 5 and p.passed
 
 
 def test_a_late_answer_from_an_earlier_run_is_not_this_runs_answer(toy):

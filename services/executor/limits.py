@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from services.executor.engine import ServedModel, make_engine, resolve_kind
-from services.executor.simulation import SearchCancelled, SimConfig, find_capacity
+from services.executor.simulation import SearchCancelled, SimConfig, find_capacity, meets
 from shared.config import ClusterConfig, EngineConfig, LimitsConfig, ModelConfig
 from shared.files import exclusive, write_atomic
 
@@ -107,7 +107,7 @@ def _failed_at(entry: dict, limit: int, target: float) -> bool:
     if not isinstance(points, list):
         return False
     return any(isinstance(p, dict) and p.get("robots") == limit and isinstance(p.get("slo_attainment"), (int, float))
-               and p["slo_attainment"] < target for p in points)
+               and not meets(p["slo_attainment"], target) for p in points)
 
 
 def owned_models(cfg: ClusterConfig, executor: str, hosted: list[str]) -> list[str]:
