@@ -6,6 +6,7 @@ processes run on loopback in test_cluster.py.)"""
 from __future__ import annotations
 
 import importlib
+import re
 import shlex
 from pathlib import Path
 from urllib.parse import urlparse
@@ -31,7 +32,9 @@ def python_argv(service: dict) -> list[str]:
         # the service never drained and was killed at the end of its stop grace. The command must exec python.
         assert cmd.startswith("exec python "), f"{service['command']!r}: a shell-wrapped command must exec python"
         cmd = cmd[len("exec "):]
-        env = {"HOSTNAME": "replica-1", **service.get("environment", {})}
+        # Compose fills ${VAR:-default} from the host's environment: unset there, the default.
+        env = {"HOSTNAME": "replica-1", **{k: re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", v)
+                                           for k, v in service.get("environment", {}).items()}}
         for key, value in env.items():
             cmd = cmd.replace(f"$${{{key}}}", value)
     argv = shlex.split(cmd)
@@ -55,6 +58,23 @@ def test_compose_command_is_a_real_entry_point(name):
         models = {m.name for m in cfg.models}
         # A named executor is in the config; a replica brings models the config defines.
         assert parsed.name in names or (parsed.models and set(parsed.models.split(",")) <= models), parsed
+
+
+def test_every_service_runs_under_an_init_and_executors_have_time_to_drain():
+    """init: Python as PID 1 ignores a SIGTERM that comes before its handler is installed, so a stop right after a start
+    waited out the stop grace and killed a process serving by then. An executor's drain is bounded by ExecutorIO's
+    WITHDRAW_* waits, plus a few seconds to close and exit: the grace must cover them, or it is killed mid-drain."""
+    from services.executor.transport import ExecutorIO as IO
+
+    drain_s = IO.WITHDRAW_SOLVE_S + IO.WITHDRAW_REPLY_S + IO.WITHDRAW_ACK_S + IO.WITHDRAW_ANSWER_S + 5
+    for name, service in SERVICES.items():
+        assert service.get("init") is True, name
+        if python_argv(service)[0] == "services.executor.main":
+            grace = service.get("stop_grace_period", "10s")
+            assert grace.endswith("s") and float(grace[:-1]) >= drain_s, (name, grace, drain_s)
+            # The SM profiles and robot limits outlive the container: a new replica on a GPU otherwise profiles anew.
+            assert "robion-state:/app/state" in service.get("volumes", []), name
+    assert "robion-state" in COMPOSE["volumes"]
 
 
 def test_compose_addresses_point_at_compose_services():
