@@ -92,7 +92,7 @@ def reply_frames(res: Result, now: float) -> list:
 
 class ExecutorIO:
     # withdraw(): wait for the drain's answer (beyond the plane's traffic solve), for the router to fetch the
-    # new table, for the requests accepted to be answered (all bounded: docker-compose gives executors 30 s
+    # new table, for the requests accepted to be answered (all bounded: docker-compose gives executors 40 s
     # after SIGTERM, stop_grace_period), and how long no request may arrive before the engine is stopped.
     WITHDRAW_REPLY_S = 1.0
     WITHDRAW_SOLVE_S = 20.0
@@ -356,7 +356,7 @@ class ExecutorIO:
         self._ctl_replies.clear()
         sent = self._ctl_send("drain", executor=self.name)
         # The control plane re-solves the traffic plan before it answers a drain, for up to its solve time limit
-        # (at most WITHDRAW_SOLVE_S of it: a container's stop grace is 30 s); a drain that could not even be queued,
+        # (at most WITHDRAW_SOLVE_S of it: a container's stop grace is 40 s); a drain that could not even be queued,
         # or went to a plane that is not connected, is not waited for beyond WITHDRAW_REPLY_S.
         answerable = sent and self._ctl_connected()
         solve_s = min(self.cfg.control.solve_time_limit_s, self.WITHDRAW_SOLVE_S) if answerable else 0.0
