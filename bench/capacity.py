@@ -179,13 +179,21 @@ def _point_dict(p: Point) -> dict:
     return _json_safe(dataclasses.asdict(p))
 
 
+# What makes capacities comparable side by side in one file (and one plot, titled with one GPU): runs merged into a
+# file must agree on these. Durations, epochs and search starts may differ per model (E1 sets them per model).
+MERGE_SETTINGS = ("hz", "network", "max_batch", "size")
+
+
 class Report:
     """The JSON document; rewritten after every point so an interrupted run keeps its points."""
 
     def __init__(self, path: Path | None, settings: dict, meta_: dict, merge: bool):
         self.path = path
+        # A model is this run's from its first point on (point()): one interrupted before it stays the earlier run's.
+        self._models = dict(settings.get("models") or {})
         self.doc: dict = {"schema": SCHEMA, "target": settings["target"], "capacity": {}, "complete": {},
-                          "ratios": {}, "deadlines_ms": {}, "curves": {}, "settings": settings, "meta": meta_}
+                          "ratios": {}, "deadlines_ms": {}, "curves": {}, "settings": {**settings, "models": {}},
+                          "meta": meta_}
         self._fresh: set[str] = set()  # models this run has measured a point of
         if merge and path is not None and path.exists():
             old = json.loads(path.read_text())
@@ -195,6 +203,13 @@ class Report:
                 # One top-level target: the kept models' capacities would read as measured at this run's.
                 raise SystemExit(f"--merge: {path} holds capacities at target {old.get('target')}, this run "
                                  f"measures at {settings['target']}; write another file")
+            was = {**{k: (old.get("settings") or {}).get(k) for k in MERGE_SETTINGS},
+                   "gpu": (old.get("meta") or {}).get("gpu")}
+            now = {**{k: settings.get(k) for k in MERGE_SETTINGS}, "gpu": meta_.get("gpu")}
+            differ = [f"{k} {was[k]!r} there, {now[k]!r} here" for k in was if was[k] != now[k]]
+            if differ:
+                raise SystemExit(f"--merge: {path} was measured otherwise ({'; '.join(differ)}): its capacities "
+                                 "would not compare with this run's; write another file")
             for key in ("capacity", "complete", "ratios", "deadlines_ms", "curves", "overlap_bound"):
                 self.doc[key] = old.get(key, {})
             # Settings and meta of earlier runs stay with the models they measured (settings.models).
@@ -213,6 +228,7 @@ class Report:
                 ((run.get("settings") or {}).get("models") or {}).pop(model, None)
             if "runs" in self.doc:
                 self.doc["runs"] = [r for r in self.doc["runs"] if (r.get("settings") or {}).get("models")]
+            self.doc["settings"]["models"][model] = self._models.get(model)
         self.doc["curves"].setdefault(model, {}).setdefault(engine, []).append(_point_dict(point))
         self.doc["complete"].setdefault(model, {})[engine] = False
         self.write()

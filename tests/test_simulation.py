@@ -598,6 +598,38 @@ def test_a_merged_rerun_replaces_a_model_from_its_first_point_and_keeps_one_targ
     assert [sorted(r["settings"]["models"]) for r in runs] == [["other"]]
 
 
+def test_a_merge_needs_comparable_runs_and_a_model_is_claimed_from_its_first_point(tmp_path):
+    """A merge of runs at another rate, network, batch, size or GPU was accepted, and the plot titled every column with
+    this run's GPU. A rerun interrupted before a model's first point listed it in its own settings too, beside the
+    earlier run that measured it: two runs claimed one model's results."""
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+    from services.executor.simulation import CapacityResult, Point
+
+    base = {"target": 0.98, "hz": 2.0, "network": "wifi7", "max_batch": 2, "size": "full", "duration_s": 3}
+    point = Point(robots=3, slo_attainment=1.0, p50_ms=1.0, p99_ms=2.0, passed=True, epochs=5, sent=1, misses=0,
+                  errors={}, no_reply=0, submit_lag_max_ms=0.0, wall_s=0.1)
+    path = tmp_path / "cap.json"
+    first = bench_capacity.Report(path, {**base, "models": {"toy": "toy", "other": "toy"}}, {"gpu": "H100"}, merge=False)
+    for m in ("toy", "other"):
+        first.point(m, "robion", point)
+        first.model_done(m, {"robion": CapacityResult(m, "robion", 0.98, "search", 3, [], [])}, None)
+    for change, meta_, fragment in (({"hz": 5.0}, {"gpu": "H100"}, "hz 2.0 there, 5.0 here"),
+                                    ({"network": "5g"}, {"gpu": "H100"}, "network"),
+                                    ({"size": "tiny"}, {"gpu": "H100"}, "size"),
+                                    ({}, {"gpu": "H200"}, "gpu 'H100' there, 'H200' here")):
+        with pytest.raises(SystemExit, match=fragment):
+            bench_capacity.Report(path, {**base, **change, "models": {"toy": "toy"}}, meta_, merge=True)
+    # Another duration (E1 sets one per model) merges; interrupted after toy's first point, before other's.
+    again = bench_capacity.Report(path, {**base, "duration_s": 4, "models": {"toy": "toy", "other": "toy"}},
+                                  {"gpu": "H100"}, merge=True)
+    again.point("toy", "robion", point)
+    doc = json.loads(path.read_text())
+    assert doc["settings"]["models"] == {"toy": "toy"}
+    assert [sorted(r["settings"]["models"]) for r in doc["runs"]] == [["other"]]
+    assert doc["capacity"] == {"other": {"robion": 3}}
+
+
 def test_replot_of_a_missing_or_foreign_file_is_a_message(tmp_path):
     sys.path.insert(0, os.path.join(ROOT, "bench"))
     import capacity as bench_capacity
