@@ -111,7 +111,7 @@ def run(args) -> dict:
 
     commit = source_commit(short=True) or ""
     meta = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit, "dirty": dirty(),
-            "device": torch.cuda.get_device_name(0) if device.startswith("cuda") else "cpu", "torch": torch.__version__,
+            "device": torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else "cpu", "torch": torch.__version__,
             "size": args.size, "hz": args.hz, "epochs": args.epochs, "duration_s": args.duration,
             "command": "python bench/colocation.py " + " ".join(sys.argv[1:])}
     return {"meta": meta, "rows": rows, "summary": summary(rows, args.experiment)}
@@ -171,6 +171,10 @@ def main(argv: list[str] | None = None) -> int:
     for name, value in (("--hz", args.hz), ("--duration", args.duration), ("--deadline", args.deadline)):
         if not (math.isfinite(value) and value > 0):
             p.error(f"{name}: expected a positive number, got {value}")
+    if args.duration < 1 / args.hz:
+        # Shorter, and a robot whose random start falls after the window sends nothing: a model of few robots then
+        # sent nothing in some epochs, and its row averaged the others (as bench/capacity.py refuses).
+        p.error(f"--duration: expected at least one period (1 / --hz = {1 / args.hz:g} s), got {args.duration}")
     if args.epochs < 1:
         p.error(f"--epochs: expected at least 1, got {args.epochs}")
     if args.out and (why := unwritable(args.out)):  # before the run, not after it

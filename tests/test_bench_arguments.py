@@ -20,6 +20,9 @@ CASES = {
     "colocation max batch": (["colocation.py", "e4", "--size", "tiny", "--device", "cpu", "--max-batch", "0"],
                              "--max-batch"),
     "colocation epochs": (["colocation.py", "e4", "--size", "tiny", "--device", "cpu", "--epochs", "0"], "--epochs"),
+    # Under one period (1 / 2 Hz): a model of few robots sent nothing in some epochs, and its row averaged the others.
+    "colocation duration": (["colocation.py", "e4", "--size", "tiny", "--device", "cpu", "--duration", "0.3"],
+                            "--duration"),
     "colocation out": (["colocation.py", "e4", "--size", "tiny", "--device", "cpu", "--out", "/nonexistent/r.json"],
                        "--out"),
     "interdisagg target": (["interdisagg.py", "--devices", "cpu,cpu", "--size", "tiny", "--target", "1.5"],
