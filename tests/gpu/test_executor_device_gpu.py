@@ -29,7 +29,8 @@ def test_models_beyond_the_gpus_free_memory_stop_the_executor_before_loading(tmp
     models = [{"name": f"xr0-{i}", "arch": "xr0", "size": "full", "seed": i, "slo_ms": 117} for i in range(12)]
     names = [m["name"] for m in models]
     path, _ = cluster_config(tmp_path, models=models, executors=[{"name": "g0", "device": "cuda:0", "models": names}])
-    args = ("--name", "rep0", "--models", ",".join(names)) if replica else ("--name", "g0")
+    # A replica's device is its --device (the config's default, cpu, otherwise).
+    args = ("--name", "rep0", "--models", ",".join(names), "--device", "cuda:0") if replica else ("--name", "g0")
     res = executor_exit(path, *args, timeout_s=300)
     assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
     where = "--models" if replica else "executors[0].models"
