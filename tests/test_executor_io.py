@@ -702,3 +702,31 @@ def test_heartbeats_are_not_queued_for_a_control_plane_that_is_down(harness):
         assert first.count("heartbeat") <= steady.count("heartbeat") + 3, (first, steady)
     finally:
         plane.close()
+
+
+def test_a_load_that_comes_during_a_reload_runs_after_it(harness, monkeypatch):
+    """The control plane sends another load while a reload still runs (the first's rollout step timed out, then a later
+    apply moved the models again): it runs once the first is done, and the registrations carry both outcomes in turn.
+    It used to be ignored, and the executor kept the first load's models for good."""
+    h = harness(models=("toy-a",), control_plane=True,
+                control={"bind": f"tcp://127.0.0.1:{free_ports(1)[0]}", "heartbeat_s": 0.05, "metrics_port": 0})
+    slow_load = h.store.load
+
+    def load(configs):
+        time.sleep(1.0)  # a reload that takes a while (weights, graphs, profiling on a GPU)
+        return slow_load(configs)
+
+    monkeypatch.setattr(h.store, "load", load)
+    for load_id, models in (("first", ["toy-b"]), ("second", ["toy-a", "toy-b"])):
+        h.control.send_multipart([b"ex0", control.pack("load", models=[asdict(h.cfg.model(m)) for m in models],
+                                                       load_id=load_id)])
+    outcomes = []
+    end = time.monotonic() + 30
+    while time.monotonic() < end and len(outcomes) < 2:
+        for msg in h.control_messages(0.05):
+            if msg.get("kind") == "register" and (msg.get("load") or {}).get("id") not in (None, *outcomes):
+                outcomes.append(msg["load"]["id"])
+                assert msg["load"]["ok"] is True, msg
+                last = sorted(msg["models"])
+    assert outcomes == ["first", "second"], outcomes
+    assert last == ["toy-a", "toy-b"] and sorted(h.io.served) == ["toy-a", "toy-b"]

@@ -121,6 +121,9 @@ class ExecutorIO:
         self.instance = uuid.uuid4().hex
         self.in_flight = 0  # requests handed to the engine and not yet answered (I/O thread only)
         self._reload: threading.Thread | None = None
+        # A load that came while a reload ran (its rollout step timed out, and a later apply sent another): run after it.
+        # Ignored, the executor kept the older load's models for good, as the plane reconciles a process only once.
+        self._next_load: dict | None = None
         # The outcome of the last `load`, {id, ok, error?}: every registration carries it, so the control plane
         # reads from the registration after a reload whether the new models were loaded.
         self._load_outcome: dict | None = None
@@ -306,6 +309,10 @@ class ExecutorIO:
             # not from the next heartbeat on: a reply in between was judged by the old deadline, or by none.
             self.metrics.serve_models({n: s.slo_s for n, s in self.served.items()})
             self.register()
+        if (self._next_load is not None and not self._leaving and not self._reload.is_alive()
+                and not self._reregister.is_set()):  # the finished reload's outcome is registered first
+            msg, self._next_load = self._next_load, None
+            self._start_reload(msg)
         now = time.monotonic()
         if now - self._last_beat >= self.cfg.control.heartbeat_s:
             self._last_beat = now
@@ -391,7 +398,8 @@ class ExecutorIO:
 
     def _start_reload(self, msg: dict) -> None:
         if self._reload is not None and self._reload.is_alive():
-            log.warning("a model reload is already running; ignoring another")
+            log.warning("a model reload is already running; the load that came meanwhile runs after it")
+            self._next_load = msg  # the newest: it is the control plane's latest word
             return
         load_id = msg.get("load_id")
         try:
