@@ -13,6 +13,9 @@ ExecutorIO says hello with its instance.
 from __future__ import annotations
 
 import logging
+import socket
+import struct
+import threading
 import time
 
 import numpy as np
@@ -114,6 +117,82 @@ def test_requests_to_an_executor_whose_connection_closed_are_answered_at_once(tm
         alive.send_multipart([b"arm", *encode(InferReply(id="r3", model="toy-b", actions=actions))])
         assert robot.poll(2000)
         assert isinstance(decode(robot.recv_multipart()), InferReply)
+
+
+class ResettingProxy:
+    """A TCP proxy in front of the router's backend whose connections can be reset (a network blip)."""
+
+    def __init__(self, upstream_port: int):
+        self.upstream = upstream_port
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.pairs: list[tuple[socket.socket, socket.socket]] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.upstream))
+            self.pairs.append((client, upstream))
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pump(a: socket.socket, b: socket.socket) -> None:
+        try:
+            while data := a.recv(65536):
+                b.sendall(data)
+        except OSError:
+            pass
+
+    def reset(self) -> None:
+        for pair in self.pairs:
+            for s in pair:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # close with a RST
+                # shutdown first: it wakes the pump blocked in recv(), which a bare close() leaves reading a reused fd
+                try:
+                    s.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+                s.close()
+        self.pairs = []
+
+    def close(self) -> None:
+        self.reset()
+        self.listener.close()
+
+
+def test_an_executor_whose_connection_resets_and_comes_back_still_answers(tmp_path, monkeypatch):
+    """A living executor's TCP connection resets (a network blip): its DEALER reconnects at once, still holding its
+    requests, and answers them on the new connection. The router's probe after the disconnect failed them at the first
+    unreachable probe and dropped the answer; now only an executor unreachable for RECONNECT_GRACE_S is failed. (The
+    grace is doubled here for a loaded test host; the code before failed at the first probe whatever the grace.)"""
+    monkeypatch.setattr(frontend, "RECONNECT_GRACE_S", 1.0, raising=False)
+    monkeypatch.setattr(frontend, "PROBE_AFTER_DISCONNECT_S", 3.0)
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        proxy = ResettingProxy(int(rt.cfg.router.backend.rsplit(":", 1)[1]))
+        try:
+            ex = rt.ctx.socket(zmq.DEALER)
+            ex.setsockopt(zmq.IDENTITY, b"ex0")
+            ex.setsockopt(zmq.LINGER, 0)
+            ex.connect(f"tcp://127.0.0.1:{proxy.port}")
+            rt.socks.append(ex)
+            ex.send(b"")  # the router ignores a one-frame message; its handshake makes the identity routable
+            time.sleep(0.3)
+            robot = rt.robot(b"arm")
+            held_request(rt, robot, ex, "r1")
+            proxy.reset()
+            time.sleep(1.5)  # the executor computes; its DEALER reconnects meanwhile
+            actions = np.zeros((INFO.horizon, INFO.action_dim), np.float32)
+            ex.send_multipart([b"arm", *encode(InferReply(id="r1", model="toy-a", actions=actions))])
+            assert robot.poll(5000), "no answer"
+            rep = decode(robot.recv_multipart())
+            assert isinstance(rep, InferReply) and rep.id == "r1", rep
+        finally:
+            proxy.close()
 
 
 @pytest.mark.parametrize("second", ["same instance", "no instance"])

@@ -38,9 +38,11 @@ SHUTDOWN_LINGER_MS = 1000  # at shutdown, how long the last answers may take to 
 WARN_EVERY_S = 5.0  # refusals a peer can trigger at will are logged at most this often, with a count
 # After an executor's connection closes (the socket's monitor names no identity), each executor with requests in flight
 # is probed this long, every sweep: one empty frame, which executors ignore. ROUTER_MANDATORY refuses it for an identity
-# whose connection is gone, and its requests are answered at once. The identity's pipe may outlive the event by a
-# moment, hence the repeats.
-PROBE_AFTER_DISCONNECT_S = 1.0
+# whose connection is gone. Its requests are answered once it has stayed unreachable for RECONNECT_GRACE_S: a living
+# executor whose connection was reset reconnects within libzmq's reconnect interval (0.1 s), still holding its requests,
+# and answers them on the new connection.
+PROBE_AFTER_DISCONNECT_S = 1.5
+RECONNECT_GRACE_S = 0.5
 
 # A request in flight: (robot, id type, id). The id keeps its wire type, so 7 and "7" from one
 # robot are two requests; the type is in the key so that stays true whatever the ids compare as.
@@ -107,11 +109,13 @@ class Router:
         self.backend.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.backend.setsockopt(zmq.LINGER, 0)
         bind(self.backend, cfg.router.backend, "router.backend")
-        # An executor's connection closing (it crashed, or its host went away) is reported here. Without it its requests
-        # in flight waited for the control plane to notice its missing heartbeats (seconds), or, with the plane down too,
-        # for request_timeout_s.
+        # An executor's connection closing (its process crashed or was killed: the OS closes its sockets) is reported
+        # here. Without it its requests in flight waited for the control plane to notice its missing heartbeats
+        # (seconds), or, with the plane down too, for request_timeout_s. (A host that loses power or its network closes
+        # nothing: the control plane's heartbeats find that.)
         self.backend_events = self.backend.get_monitor_socket(zmq.EVENT_DISCONNECTED)
         self._probe_until = 0.0
+        self._unreachable_since: dict[str, float] = {}  # executor -> when a probe first found it gone
 
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.LINGER, 0)
@@ -165,7 +169,9 @@ class Router:
                 self._last_sweep = now
                 self._expire(now)
                 if now < self._probe_until:
-                    self._probe_executors()
+                    self._probe_executors(now)
+                else:
+                    self._unreachable_since.clear()
             if now - self._last_pin_sweep >= PIN_SWEEP_S:
                 self._last_pin_sweep = now
                 released = self.routing.release_idle(now)
@@ -178,7 +184,7 @@ class Router:
                 if sock is self.backend_events:
                     if monitor_events(self.backend_events):
                         self._probe_until = time.monotonic() + PROBE_AFTER_DISCONNECT_S
-                        self._probe_executors()
+                        self._probe_executors(time.monotonic())
                     continue
                 # Drain each ready socket a bounded number of times so one side cannot starve the other.
                 for _ in range(256):
@@ -405,8 +411,9 @@ class Router:
         if stale:
             self.metrics.in_flight.set(len(self.in_flight))
 
-    def _probe_executors(self) -> None:
-        """Fail the requests in flight to each executor whose connection is gone (see PROBE_AFTER_DISCONNECT_S)."""
+    def _probe_executors(self, now: float) -> None:
+        """Fail the requests in flight to each executor whose connection has been gone for RECONNECT_GRACE_S (see
+        PROBE_AFTER_DISCONNECT_S)."""
         for executor in {f.executor for f in self.in_flight.values()}:
             try:
                 self.backend.send_multipart([executor.encode(), b""], flags=zmq.NOBLOCK)
@@ -415,7 +422,11 @@ class Router:
             except zmq.ZMQError as exc:
                 if exc.errno != zmq.EHOSTUNREACH:
                     raise
-                self._fail_executor(executor, "closed its connection")
+                if now - self._unreachable_since.setdefault(executor, now) >= RECONNECT_GRACE_S:
+                    del self._unreachable_since[executor]
+                    self._fail_executor(executor, "closed its connection")
+                continue
+            self._unreachable_since.pop(executor, None)  # connected (again)
 
     def _fail_executor(self, executor: str, reason: str = "went away") -> None:
         """Answer every request in flight to ``executor`` UNAVAILABLE: it will never answer them."""
