@@ -23,10 +23,14 @@ def test_a_gpu_index_past_the_hosts_stops_the_executor_with_the_device_named(tmp
 
 @pytest.mark.parametrize("replica", [False, True], ids=["configured", "replica"])
 def test_models_beyond_the_gpus_free_memory_stop_the_executor_before_loading(tmp_path, replica):
-    """Twelve full-size XR0 models (about 11 GiB each by the estimate) cannot fit any GPU: the executor exits 2
-    naming its models before it loads one. A replica scaled out with --models (as docker-compose does) used to skip
+    """One full-size XR0 model (about 11 GiB by the estimate) more than the GPU's free memory holds: the executor exits
+    2 naming its models before it loads one. A replica scaled out with --models (as docker-compose does) used to skip
     the check and run out of memory part-way through loading."""
-    models = [{"name": f"xr0-{i}", "arch": "xr0", "size": "full", "seed": i, "slo_ms": 117} for i in range(12)]
+    from shared.placement import model_bytes
+
+    free, _ = torch.cuda.mem_get_info(0)
+    count = free // model_bytes("xr0", "full", 2) + 1  # 8 on an 80 GB H100, 13 on an H200
+    models = [{"name": f"xr0-{i}", "arch": "xr0", "size": "full", "seed": i, "slo_ms": 117} for i in range(count)]
     names = [m["name"] for m in models]
     path, _ = cluster_config(tmp_path, models=models, executors=[{"name": "g0", "device": "cuda:0", "models": names}])
     # A replica's device is its --device (the config's default, cpu, otherwise).
