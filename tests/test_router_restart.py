@@ -169,9 +169,9 @@ def test_an_executor_whose_connection_resets_and_comes_back_still_answers(tmp_pa
     """A living executor's TCP connection resets (a network blip): its DEALER reconnects at once, still holding its
     requests, and answers them on the new connection. The router's probe after the disconnect failed them at the first
     unreachable probe and dropped the answer; now only an executor unreachable for RECONNECT_GRACE_S is failed. (The
-    grace is doubled here for a loaded test host; the code before failed at the first probe whatever the grace.)"""
-    monkeypatch.setattr(frontend, "RECONNECT_GRACE_S", 1.0, raising=False)
-    monkeypatch.setattr(frontend, "PROBE_AFTER_DISCONNECT_S", 3.0)
+    grace is raised here for a loaded test host; the code before failed at the first probe whatever the grace.)"""
+    monkeypatch.setattr(frontend, "RECONNECT_GRACE_S", 2.0, raising=False)
+    monkeypatch.setattr(frontend, "PROBE_AFTER_DISCONNECT_S", 4.0)
     with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
         proxy = ResettingProxy(int(rt.cfg.router.backend.rsplit(":", 1)[1]))
         try:
