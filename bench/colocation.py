@@ -111,7 +111,8 @@ def run(args) -> dict:
 
     commit = source_commit(short=True) or ""
     meta = {"experiment": args.experiment, "date": datetime.date.today().isoformat(), "commit": commit, "dirty": dirty(),
-            "device": torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else "cpu", "torch": torch.__version__,
+            "device": torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else "cpu",
+            "torch": torch.__version__,
             "size": args.size, "hz": args.hz, "epochs": args.epochs, "duration_s": args.duration,
             "command": "python bench/colocation.py " + " ".join(sys.argv[1:])}
     return {"meta": meta, "rows": rows, "summary": summary(rows, args.experiment)}

@@ -71,20 +71,14 @@ def _folded_params(model) -> int:
     return n
 
 
-def models_bytes(cfg: ClusterConfig, models: list[str]) -> int:
-    """Device memory one executor hosting ``models`` needs, CUDA context included."""
-    # Fine-tuned variants of one architecture still hold their own weights.
-    return CONTEXT_OVERHEAD + sum(model_bytes(cfg.model(m).arch, cfg.model(m).size, cfg.engine.max_batch)
-                                  for m in models)
-
-
 def memory_shortfall(cfg: ClusterConfig, executor: str, models: list[str], have: int) -> str | None:
-    """Why ``models`` do not fit in ``have`` bytes on ``executor``; None when they fit."""
-    need = models_bytes(cfg, models)
+    """Why ``models`` do not fit in ``have`` bytes on ``executor`` (CUDA context included); None when they fit."""
+    # Fine-tuned variants of one architecture still hold their own weights.
+    each = {m: model_bytes(cfg.model(m).arch, cfg.model(m).size, cfg.engine.max_batch) for m in models}
+    need = CONTEXT_OVERHEAD + sum(each.values())
     if need <= have:
         return None
-    per = ", ".join(f"{m} {model_bytes(cfg.model(m).arch, cfg.model(m).size, cfg.engine.max_batch) / GIB:.1f}"
-                    for m in models)
+    per = ", ".join(f"{m} {b / GIB:.1f}" for m, b in each.items())
     return (f"the models placed on {executor} need about {need / GIB:.1f} GiB ({per} GiB, plus "
             f"{CONTEXT_OVERHEAD / GIB:.0f} GiB for the CUDA context) but it has {have / GIB:.1f} GiB: place fewer "
             "models there, or add a GPU")

@@ -92,13 +92,13 @@ def main(argv: list[str] | None = None) -> int:
             log.error("ROBION_CPU_THREADS: expected a positive integer, got %r", threads)
             return 2
 
+    index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), None)  # None: a replica
     if device.type == "cuda":
         # The device's free memory, not the config's memory_gb: other processes may hold some of it. A replica
         # (--models, e.g. scaled out by docker-compose) is checked as well as a configured executor.
         free, _ = torch.cuda.mem_get_info(device)
         short = memory_shortfall(cfg, args.name, ex_cfg.models, free)
         if short is not None:
-            index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), None)
             log.error("%s: %s", "--models" if index is None else f"executors[{index}].models", short)
             return 2
     store = ModelStore(device)
@@ -124,8 +124,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
     slot = EngineSlot(cfg.engine, device, on_results)
     metrics = ExecutorMetrics(args.name, ex_cfg.device, {n: s.slo_s for n, s in hosted.inputs.items()})
-    index = next((i for i, e in enumerate(cfg.executors) if e.name == args.name), 0)
-    serve(metrics.registry, args.metrics_port if args.metrics_port is not None else ex_cfg.metrics_port_or_default(index))
+    serve(metrics.registry, args.metrics_port if args.metrics_port is not None
+          else ex_cfg.metrics_port_or_default(index or 0))
     transport = ExecutorIO(args.name, cfg, ex_cfg.device, store, slot, hosted, metrics, limits=limits)
     # The engine starts on its own thread while this one answers what the router sends meanwhile.
     took = slot.start_while(hosted, lambda started: transport.answer_while_starting(started, stop))
