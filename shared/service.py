@@ -46,6 +46,22 @@ def setup_logging(name: str, level: str) -> None:
                         format=f"%(asctime)s {escaped} %(levelname)s %(name)s: %(message)s")
 
 
+# ZMTP heartbeats on the router-executor connection, set on both ends. A peer whose host lost power or its network, or
+# whose process is frozen (SIGSTOP, a paused VM or container), closes nothing: without them its connection stayed up
+# for good, the router kept sending it requests that waited out router.request_timeout_s, and an executor never
+# redialled a router whose host had come back. libzmq's I/O thread answers the pings, so a busy Python thread holding
+# the GIL does not miss them. A missed one (no traffic for HEARTBEAT_TIMEOUT_MS after a ping) closes the connection,
+# which the router handles as a crash and the executor as a reset (it redials).
+HEARTBEAT_IVL_MS = 1000
+HEARTBEAT_TIMEOUT_MS = 3000
+
+
+def keep_alive(sock: zmq.Socket) -> None:
+    """Ping the peers of ``sock`` every HEARTBEAT_IVL_MS; close a connection silent for HEARTBEAT_TIMEOUT_MS."""
+    sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
+    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
+
+
 def ipv6_ready(sock: zmq.Socket, address: str) -> None:
     """Turn ZMQ_IPV6 on for an IPv6 literal (tcp://[::1]:5555): libzmq refuses one on a socket without it
     ("No such device"). Only there: other addresses keep the IPv4 sockets they have always had."""

@@ -120,10 +120,12 @@ def test_requests_to_an_executor_whose_connection_closed_are_answered_at_once(tm
 
 
 class ResettingProxy:
-    """A TCP proxy in front of the router's backend whose connections can be reset (a network blip)."""
+    """A TCP proxy in front of the router's backend whose connections can be reset (a network blip) or frozen (a
+    peer that went silent without closing anything: a stopped process, a dead host)."""
 
     def __init__(self, upstream_port: int):
         self.upstream = upstream_port
+        self.frozen: set[socket.socket] = set()  # sockets whose bytes are held (freeze)
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.port = self.listener.getsockname()[1]
         self.pairs: list[tuple[socket.socket, socket.socket]] = []
@@ -140,13 +142,18 @@ class ResettingProxy:
             for a, b in ((client, upstream), (upstream, client)):
                 threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
 
-    @staticmethod
-    def _pump(a: socket.socket, b: socket.socket) -> None:
+    def _pump(self, a: socket.socket, b: socket.socket) -> None:
         try:
             while data := a.recv(65536):
+                while a in self.frozen:  # hold the bytes: nothing passes, nothing closes
+                    time.sleep(0.01)
                 b.sendall(data)
         except OSError:
             pass
+
+    def freeze(self) -> None:
+        """Stop passing bytes on the connections made so far, both ways; a connection made later passes them."""
+        self.frozen.update(s for pair in self.pairs for s in pair)
 
     def reset(self) -> None:
         for pair in self.pairs:
@@ -165,6 +172,19 @@ class ResettingProxy:
         self.listener.close()
 
 
+def executor_behind_proxy(rt: RouterThread) -> tuple[ResettingProxy, zmq.Socket]:
+    """A stand-in executor ex0 connected to the router's backend through a ResettingProxy."""
+    proxy = ResettingProxy(int(rt.cfg.router.backend.rsplit(":", 1)[1]))
+    ex = rt.ctx.socket(zmq.DEALER)
+    ex.setsockopt(zmq.IDENTITY, b"ex0")
+    ex.setsockopt(zmq.LINGER, 0)
+    ex.connect(f"tcp://127.0.0.1:{proxy.port}")
+    rt.socks.append(ex)
+    ex.send(b"")  # the router ignores a one-frame message; its handshake makes the identity routable
+    time.sleep(0.3)
+    return proxy, ex
+
+
 def test_an_executor_whose_connection_resets_and_comes_back_still_answers(tmp_path, monkeypatch):
     """A living executor's TCP connection resets (a network blip): its DEALER reconnects at once, still holding its
     requests, and answers them on the new connection. The router's probe after the disconnect failed them at the first
@@ -173,15 +193,8 @@ def test_an_executor_whose_connection_resets_and_comes_back_still_answers(tmp_pa
     monkeypatch.setattr(frontend, "RECONNECT_GRACE_S", 2.0, raising=False)
     monkeypatch.setattr(frontend, "PROBE_AFTER_DISCONNECT_S", 4.0)
     with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
-        proxy = ResettingProxy(int(rt.cfg.router.backend.rsplit(":", 1)[1]))
+        proxy, ex = executor_behind_proxy(rt)
         try:
-            ex = rt.ctx.socket(zmq.DEALER)
-            ex.setsockopt(zmq.IDENTITY, b"ex0")
-            ex.setsockopt(zmq.LINGER, 0)
-            ex.connect(f"tcp://127.0.0.1:{proxy.port}")
-            rt.socks.append(ex)
-            ex.send(b"")  # the router ignores a one-frame message; its handshake makes the identity routable
-            time.sleep(0.3)
             robot = rt.robot(b"arm")
             held_request(rt, robot, ex, "r1")
             proxy.reset()

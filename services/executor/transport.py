@@ -27,7 +27,7 @@ from shared.config import ClusterConfig, ModelConfig, dial_address, settings_dig
 from shared.metrics import ExecutorMetrics
 from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, RequestId, Timings, decode,
                              encode, error_frames, header_id, message_bytes, unpack_header)
-from shared.service import connect, connected_again, connection_up
+from shared.service import connect, connected_again, connection_up, keep_alive
 
 log = logging.getLogger("robion.executor")
 
@@ -155,6 +155,7 @@ class ExecutorIO:
         self.backend.setsockopt(zmq.IDENTITY, name.encode())
         self.backend.setsockopt(zmq.LINGER, 1000)
         self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * cfg.router.max_message_bytes + 65536)
+        keep_alive(self.backend)  # a router whose host died is redialled once it is back (shared.service)
         # Each (re)connect to the router is reported here, so a restarted router hears our hello (and
         # instance) at once: otherwise it would learn our instance only at our next registration, and
         # could not tell a later restart of ours from our first hello (requests in flight to the old

@@ -21,7 +21,7 @@ from shared.control import RoutingTable, TableError
 from shared.metrics import RouterMetrics, serve
 from shared.protocol import (MAX_ID_CHARS, ErrorCode, Metadata, Pong, ProtocolError, RequestId, check_header, encode,
                              error_frames, header_id, max_frames, message_bytes, shown, unpack_header)
-from shared.service import bind, connect, connected_again, monitor_events
+from shared.service import bind, connect, connected_again, keep_alive, monitor_events
 
 log = logging.getLogger("robion.router")
 
@@ -108,11 +108,12 @@ class Router:
         self.backend.setsockopt(zmq.ROUTER_MANDATORY, 1)
         self.backend.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.backend.setsockopt(zmq.LINGER, 0)
+        keep_alive(self.backend)  # a frozen executor, or a dead host, is disconnected (shared.service)
         bind(self.backend, cfg.router.backend, "router.backend")
-        # An executor's connection closing (its process crashed or was killed: the OS closes its sockets) is reported
-        # here. Without it its requests in flight waited for the control plane to notice its missing heartbeats
-        # (seconds), or, with the plane down too, for request_timeout_s. (A host that loses power or its network closes
-        # nothing: the control plane's heartbeats find that.)
+        # An executor's connection closing (its process crashed or was killed: the OS closes its sockets; or it missed
+        # the heartbeats of keep_alive: a frozen process or a dead host) is reported here. Without it its requests in
+        # flight waited for the control plane to notice its missing heartbeats (seconds), or, with the plane down too,
+        # for request_timeout_s.
         self.backend_events = self.backend.get_monitor_socket(zmq.EVENT_DISCONNECTED)
         self._probe_until = 0.0
         self._unreachable_since: dict[str, float] = {}  # executor -> when a probe first found it gone

@@ -1,0 +1,126 @@
+"""An executor that goes silent without closing its connection: a frozen process (SIGSTOP, a paused container) or a
+host that lost power or its network. The OS closes nothing, so only the ZMTP heartbeats of shared.service.keep_alive
+tell the router; it then fails the executor's requests in flight as it does a crashed one's, instead of leaving them
+to router.request_timeout_s, and the model's other executors take the traffic.
+
+The first test freezes a TCP proxy between the router (its real loop in a thread) and a stand-in executor, with short
+heartbeats; the second freezes one between a real executor's I/O loop and a stand-in router, which the executor must
+redial (a router whose host died and came back). The third stops a real executor process of a real cluster, the control plane killed first (with the plane
+up, its own heartbeats find the frozen executor within control.heartbeat_s x missed_heartbeats)."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import numpy as np
+import zmq
+
+from shared import service
+from shared.client import RobionError, RobotClient
+from shared.cluster import LocalCluster
+from shared.config import load_config
+from shared.protocol import ErrorCode, ErrorReply, decode
+from tests.helpers import cluster_config, free_ports
+from tests.test_executor_io import Harness
+from tests.test_executor_reconnect import hellos_until
+from tests.test_router_restart import LONG_TIMEOUT_S, ResettingProxy, executor_behind_proxy, held_request
+from tests.test_router_robustness import RouterThread, one_executor_table
+
+
+def test_a_frozen_connection_is_failed_after_the_heartbeat_timeout(tmp_path, monkeypatch):
+    """The proxy stops passing bytes both ways and closes nothing: the router's pings go unanswered, so it closes the
+    connection after HEARTBEAT_TIMEOUT_MS and answers the request UNAVAILABLE, long before request_timeout_s."""
+    monkeypatch.setattr(service, "HEARTBEAT_IVL_MS", 200, raising=False)
+    monkeypatch.setattr(service, "HEARTBEAT_TIMEOUT_MS", 600, raising=False)
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        proxy, ex = executor_behind_proxy(rt)
+        try:
+            robot = rt.robot(b"arm")
+            held_request(rt, robot, ex, "r1")
+            time.sleep(1.0)  # several heartbeat intervals: a connection that passes bytes is kept
+            assert rt.router.in_flight, "a live connection was failed"
+            t0 = time.monotonic()
+            proxy.freeze()
+            assert robot.poll(20_000), "no answer within 20 s of the freeze"
+            took = time.monotonic() - t0
+            rep = decode(robot.recv_multipart())
+            assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.UNAVAILABLE, rep
+            assert "closed its connection" in rep.message, rep.message
+            assert took < 10.0, took  # timeout 0.6 s + grace 0.5 s, with room for a loaded host; before: 60 s
+        finally:
+            proxy.close()
+
+
+def test_the_executor_redials_a_router_that_went_silent(tmp_path, monkeypatch):
+    """The connection to the router freezes: the executor's pings go unanswered, so it closes the connection and
+    redials (through the proxy, whose new connections pass bytes), says hello again and serves through it. Before,
+    it kept the frozen connection for good: a router whose host died and came back never heard from it again."""
+    monkeypatch.setattr(service, "HEARTBEAT_IVL_MS", 200, raising=False)
+    monkeypatch.setattr(service, "HEARTBEAT_TIMEOUT_MS", 600, raising=False)
+    rp, bp, pp = free_ports(3)
+    proxy = ResettingProxy(bp)  # listens on a port of its own; the executor dials it, not the router's backend
+    router = {"bind": f"tcp://127.0.0.1:{rp}", "backend": f"tcp://127.0.0.1:{bp}",
+              "backend_connect": f"tcp://127.0.0.1:{proxy.port}", "max_message_bytes": 1_000_000, "metrics_port": 0}
+    h = Harness(tmp_path, router=router)
+    try:
+        h.router.setsockopt(zmq.ROUTER_HANDOVER, 1)  # as the real router: a redial takes the name over
+        hellos_until(h.router, time.monotonic() + 0.5)  # the start-up hellos
+        proxy.freeze()
+        expected = {"kind": "executor_hello", "executor": "ex0", "instance": h.io.instance}
+        got = hellos_until(h.router, time.monotonic() + 10.0, stop_at=expected)
+        assert expected in got, f"no hello on a new connection within 10 s: {got}"
+        h.send(h.request("after-redial"))
+        assert h.router.poll(10_000), "no reply on the new connection"
+    finally:
+        h.close()
+        proxy.close()
+
+
+def test_a_stopped_executor_process_is_routed_around_with_the_control_plane_down(tmp_path):
+    """SIGSTOP one of toy-a's two executors, the control plane killed: its requests are answered UNAVAILABLE within
+    seconds (before: request_timeout_s, 30 s), the rest of toy-a's traffic goes to the other executor, and after
+    SIGCONT the stopped one reconnects and serves again."""
+    path, _ = cluster_config(tmp_path)
+    cfg = load_config(path)
+    with LocalCluster(cfg, path, log_level="WARNING") as cluster:
+        with RobotClient(cfg.router.bind, robot_id="arm", timeout_s=60) as client:
+            info = client.metadata()["toy-a"]
+            rng = np.random.default_rng(0)
+            images = {cam: rng.integers(0, 256, info.image_shape, dtype=np.uint8) for cam in info.cameras}
+            state = rng.standard_normal(info.state_dim).astype(np.float32)
+            assert all(client.infer("toy-a", images, state).ok for _ in range(4))  # both executors serve
+            cluster.procs["control"].kill()
+            cluster.procs["control"].wait()
+            frozen = cluster.procs["executor[ex1]"]
+            frozen.send_signal(signal.SIGSTOP)
+            try:
+                t0 = time.monotonic()
+                ids = [client.submit("toy-a", images, state) for _ in range(10)]  # round-robin: half to ex1
+                done = {}
+                while len(done) < len(ids) and time.monotonic() - t0 < 40:
+                    for comp in client.poll(0.5):
+                        done[comp.request_id] = (comp, time.monotonic() - t0)
+                assert set(done) == set(ids)
+                failed = [(c, t) for c, t in done.values() if not c.ok]
+                assert failed, "no request went to the stopped executor"
+                for comp, took in failed:
+                    assert comp.error.code == ErrorCode.UNAVAILABLE and "ex1" in comp.error.message, comp.error
+                    assert took < 12.0, took  # heartbeat 1 s + timeout 3 s + grace 0.5 s, on a loaded host
+                # New requests go to ex0 (ex1's identity is unreachable now) and are served.
+                assert all(client.infer("toy-a", images, state).ok for _ in range(6))
+            finally:
+                frozen.send_signal(signal.SIGCONT)
+            # ex1 redials, and its late answers to the failed requests are dropped. With ex0 killed too, toy-a is
+            # served by ex1 alone.
+            cluster.procs["executor[ex0]"].kill()
+            served, deadline = 0, time.monotonic() + 20
+            while served < 3 and time.monotonic() < deadline:
+                try:
+                    served = served + 1 if client.infer("toy-a", images, state).ok else 0
+                except RobionError as exc:  # UNAVAILABLE until the router sees ex1's new connection
+                    assert exc.code == ErrorCode.UNAVAILABLE, exc
+                    served = 0
+                    time.sleep(0.2)
+            assert served == 3, "the resumed executor did not serve again"
+            assert frozen.poll() is None
