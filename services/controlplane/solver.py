@@ -30,7 +30,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from fractions import Fraction
-from typing import Iterable, Mapping, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 from ortools.graph.python import max_flow
 from ortools.sat.python import cp_model
@@ -450,12 +450,40 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
     columns = list(by_set.items())
     K = len(columns)
     s, t = M + K, M + K + 1
-    big = scale * (G + 1)
-    edges = [(s, i, m.robots * (scale // m.limit)) for i, m in enumerate(models)]
-    edges += [(i, M + k, big) for k, (key, _) in enumerate(columns) for i in key]
-    edges += [(M + k, t, scale * len(gpus)) for k, (_, gpus) in enumerate(columns)]
-    flow, reach, used = _max_flow_fast(M + K + 2, edges, s, t) or _max_flow(M + K + 2, edges, s, t)
-    demand = sum(m.robots * (scale // m.limit) for m in models)
+
+    def network(scale: int, demand: Callable[[ModelDemand], int]) -> list[tuple[int, int, int]]:
+        """Source -> model (its demand) -> host set -> sink (``scale`` per GPU); the first M edges are the demands."""
+        edges = [(s, i, demand(m)) for i, m in enumerate(models)]
+        edges += [(i, M + k, scale * (G + 1)) for k, (key, _) in enumerate(columns) for i in key]
+        return edges + [(M + k, t, scale * len(gpus)) for k, (_, gpus) in enumerate(columns)]
+
+    def relaxation(edges: list[tuple[int, int, int]], exact: bool = False):
+        """(flow, source side of a min cut, edge flows, total demand); None where OR-Tools' int64 overflows and
+        not ``exact`` (the Python max flow takes any size, slowly)."""
+        found = _max_flow_fast(M + K + 2, edges, s, t) or (_max_flow(M + K + 2, edges, s, t) if exact else None)
+        return None if found is None else (*found, sum(c for _, _, c in edges[:M]))
+
+    lcm = scale
+    exact_demand = lambda m: m.robots * (lcm // m.limit)  # noqa: E731
+    solved = relaxation(network(lcm, exact_demand))
+    if solved is None:
+        # The lcm of many distinct limits overflows int64, and the exact max flow in Python took 10-24 s on 4096 GPUs
+        # against a 1 s limit, the control plane blocked meanwhile. A power-of-two scale brackets the exact answer:
+        # with demands rounded up, a flow that carries them all proves the relaxation fits; with demands rounded
+        # down, one that cannot has a cut whose models need more than their GPUs offer, exactly. Only a problem
+        # between the two (within about 2^-40 of a GPU) is left to the exact flow.
+        room = _MAX_SCALED_ACTIVITY // (G + 1 + sum(math.ceil(m.gpu_equivalents) + 1 for m in models))
+        if room >= 2:
+            approx = 1 << (room.bit_length() - 1)
+            up = relaxation(network(approx, lambda m: -(-m.robots * approx // m.limit)))
+            if up is not None and up[0] >= up[3]:
+                return None
+            down = relaxation(network(approx, lambda m: m.robots * approx // m.limit))
+            if down is not None and down[0] < down[3]:
+                solved, scale = down, approx
+    if solved is None:
+        solved = relaxation(network(lcm, exact_demand), exact=True)
+    flow, reach, used, demand = solved
     if flow >= demand:
         return None
 
@@ -532,12 +560,26 @@ def _greedy_pass(problem: PlanProblem, prefer_empty: bool) -> dict[str, dict[int
     load: dict[int, Fraction] = {}  # GPUs given robots so far
     occupied: dict[int, int] = {}  # and how many
     out: dict[str, dict[int, int]] = {}
-    for m in _order_by_demand(problem):
+    order = _order_by_demand(problem)
+    # Ties go to the GPUs fewest models still to come can use: by index alone, a model on every GPU filled GPU 0
+    # first even where that was the only host of a model after it, and the pass got stuck on a plainly feasible
+    # problem (with the integer program too large for the time limit, the control plane then split robots evenly,
+    # over a GPU's limit).
+    wanted: dict[int, int] = {}  # GPU -> models still to place that it hosts
+    for m in order:
+        if m.robots:
+            for j in m.gpus:
+                wanted[j] = wanted.get(j, 0) + 1
+    for m in order:
+        if m.robots:
+            for j in m.gpus:
+                wanted[j] -= 1
         left, row = m.robots, {}
         # A GPU's room for this model stays the same while the model is placed: only the GPUs it
         # takes change, and it never takes one twice. One sort per model, not a scan per robot batch.
         room = {j: math.floor((1 - load[j]) * m.limit) if j in load else m.limit for j in m.gpus}
-        by_room = sorted((j for j in m.gpus if room[j] > 0), key=lambda g: (-room[g], occupied.get(g, 0), g))
+        by_room = sorted((j for j in m.gpus if room[j] > 0),
+                         key=lambda g: (-room[g], occupied.get(g, 0), wanted.get(g, 0), g))
         k = 0
         while left > 0 and k < len(by_room) and room[by_room[k]] < left:
             j = by_room[k]  # no host takes the rest whole: fill the roomiest
@@ -551,10 +593,10 @@ def _greedy_pass(problem: PlanProblem, prefer_empty: bool) -> dict[str, dict[int
             if prefer_empty:
                 # The rest whole on the GPU with the fewest robots of other models (each adds `left`
                 # to objective (3)), then the least slack.
-                j = min(fits, key=lambda g: (occupied.get(g, 0), room[g], g))
+                j = min(fits, key=lambda g: (occupied.get(g, 0), room[g], wanted.get(g, 0), g))
             else:
                 # Best fit: the least slack, keeping roomy GPUs for the models still to come.
-                j = min(fits, key=lambda g: (room[g], occupied.get(g, 0), g))
+                j = min(fits, key=lambda g: (room[g], occupied.get(g, 0), wanted.get(g, 0), g))
             row[j] = left
         for j, c in row.items():
             load[j] = load.get(j, Fraction(0)) + Fraction(c, m.limit)
