@@ -14,14 +14,15 @@ import signal
 import time
 
 import numpy as np
+import pytest
 import zmq
 
 from shared import service
 from shared.client import RobionError, RobotClient
-from shared.cluster import LocalCluster
+from shared.cluster import LocalCluster, control_status
 from shared.config import load_config
 from shared.protocol import ErrorCode, ErrorReply, decode
-from tests.helpers import cluster_config, free_ports
+from tests.helpers import cluster_config, free_ports, wait_for
 from tests.test_executor_io import Harness
 from tests.test_executor_reconnect import hellos_until
 from tests.test_router_restart import LONG_TIMEOUT_S, ResettingProxy, executor_behind_proxy, held_request
@@ -124,3 +125,38 @@ def test_a_stopped_executor_process_is_routed_around_with_the_control_plane_down
                     time.sleep(0.2)
             assert served == 3, "the resumed executor did not serve again"
             assert frozen.poll() is None
+
+
+@pytest.mark.parametrize("taken_at", ["router", "control plane"])
+def test_an_executor_gets_its_name_back_from_a_connection_that_took_it(tmp_path, taken_at):
+    """A peer connects under an executor's name, to the router's backend or to the control plane (a second process
+    started with the same --name by mistake, or a stray client), then leaves. ROUTER_HANDOVER gives it the name and
+    detaches the executor's connection without closing it, so the executor saw no disconnect: the router could no
+    longer reach it (toy-b, served by ex0 alone, answered UNAVAILABLE for good) and the control plane heard none of
+    its heartbeats and dropped it from routing for good. Its heartbeats now find the dead connections and it redials."""
+    path, _ = cluster_config(tmp_path)
+    cfg = load_config(path)
+    with LocalCluster(cfg, path, log_level="WARNING"), RobotClient(cfg.router.bind, robot_id="arm", timeout_s=10) as client:
+        info = client.metadata()["toy-b"]
+        images = {cam: np.zeros(info.image_shape, np.uint8) for cam in info.cameras}
+        state = np.zeros(info.state_dim, np.float32)
+        assert client.infer("toy-b", images, state).ok
+        ctx = zmq.Context.instance()
+        impostor = ctx.socket(zmq.DEALER)
+        impostor.setsockopt(zmq.IDENTITY, b"ex0")
+        impostor.setsockopt(zmq.LINGER, 0)
+        impostor.connect(cfg.router.backend if taken_at == "router" else cfg.control.bind)
+        impostor.send(b"")  # a one-frame message both ignore; its handshake takes the name over
+        time.sleep(0.5)
+        impostor.close()
+        time.sleep(2 * cfg.control.heartbeat_s * cfg.control.missed_heartbeats)  # the plane drops an executor it lost
+
+        def served_again() -> bool:
+            try:
+                return all(client.infer("toy-b", images, state).ok for _ in range(3))
+            except RobionError as exc:  # UNAVAILABLE until ex0 has redialled
+                assert exc.code == ErrorCode.UNAVAILABLE, exc
+                return False
+
+        assert wait_for(served_again, 20, 0.2), "toy-b's only executor was never reached again"
+        assert "ex0" in control_status(cfg.control.bind)["table"]["routes"]["toy-b"]

@@ -243,7 +243,8 @@ def test_the_first_hello_of_a_name_fails_nothing(tmp_path):
     control.pack("executor_hello", executor="ex0", instance=""),
     control.pack("something_else", executor="ex0"),
     b"\x93\x01\x02\x03",  # msgpack, but a list
-], ids=["garbage", "instance not a str", "empty instance", "unknown kind", "not a map"])
+    control.pack("executor_hello", executor="ex0", instance=OLD, pad=[{}] * 100_000),
+], ids=["garbage", "instance not a str", "empty instance", "unknown kind", "not a map", "huge"])
 def test_a_malformed_executor_hello_is_logged_once_and_ignored(tmp_path, caplog, monkeypatch, frame):
     monkeypatch.setattr(frontend, "WARN_EVERY_S", 60.0)  # one report for the whole test, however slow the host
     with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
@@ -263,6 +264,24 @@ def test_a_malformed_executor_hello_is_logged_once_and_ignored(tmp_path, caplog,
     records = [r for r in caplog.records if r.name == "robion.router" and r.levelno >= logging.WARNING]
     assert len(records) == 1, [r.getMessage() for r in records]  # rate-limited, not one per message
     assert records[0].exc_info is None  # no traceback for what a peer sent
+
+
+def test_an_executor_sending_a_frame_beyond_the_bound_is_disconnected(tmp_path):
+    """The backend bounds frames as robots' port and the executors do: libzmq drops a connection that sends a larger
+    one, unread (a living executor then redials). Without the bound the router took the frame whole (1 GB of memory
+    for a 1 GB frame, 14 GB for a stream of them)."""
+    from shared.service import monitor_events
+
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        ex = rt.executor(b"ex0")
+        events = ex.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        hello(ex, instance=OLD)
+        robot = rt.robot(b"arm")
+        held_request(rt, robot, ex, "r1")  # the connection is up and used
+        ex.send_multipart([b"arm", b"\x80", b"\0" * (2 * rt.cfg.router.max_message_bytes + 65537)])
+        assert events.poll(3000) and zmq.EVENT_DISCONNECTED in monitor_events(events), "the router kept the connection"
+        ex.disable_monitor()
+        events.close(linger=0)
 
 
 def test_the_executor_says_hello_with_its_instance(tmp_path):

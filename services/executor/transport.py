@@ -171,6 +171,9 @@ class ExecutorIO:
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.IDENTITY, name.encode())  # the control plane addresses load requests by name
         self.ctl.setsockopt(zmq.LINGER, 0)
+        # A connection that another peer's took this name from (ROUTER_HANDOVER at the plane detaches it without
+        # closing it) is found and redialled: until then every heartbeat went into it, and the plane dropped us.
+        keep_alive(self.ctl)
         # Whether the control plane's connection is up (_ctl_connected): a message to a plane that is down is
         # queued, not refused, so only this tells withdraw() not to wait for a drain's answer that cannot come.
         self.ctl_events = self.ctl.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
@@ -329,6 +332,10 @@ class ExecutorIO:
             depths = self.slot.depths()
             if plane_up:
                 self._ctl_send("heartbeat", executor=self.name, depths=depths)
+            # A message to the router every heartbeat too. A connection the router detached without closing it
+            # (another peer took this name: ROUTER_HANDOVER) still answers ZMTP pings until a message is stuck in it;
+            # only then does keep_alive's timeout find it. An idle executor sent nothing, and was never reached again.
+            self._hello()
             self._update_gauges(depths)
 
     def _ctl_reply(self, kinds: tuple[str, ...], timeout_s: float) -> dict | None:

@@ -26,6 +26,7 @@ from shared.service import bind, connect, connected_again, keep_alive, monitor_e
 log = logging.getLogger("robion.router")
 
 MAX_IN_FLIGHT = 65536
+MAX_HELLO_BYTES = 4096  # an executor_hello is under 400 bytes (a name of at most 255 bytes and a 32-char token)
 MAX_EXECUTOR_INSTANCES = 4096  # executor names whose process token is remembered (see _executor_hello)
 TABLE_POLL_S = 0.1
 # One poll is outstanding at a time; an unanswered one is sent again after this long (a control plane that restarted
@@ -108,6 +109,9 @@ class Router:
         self.backend.setsockopt(zmq.ROUTER_MANDATORY, 1)
         self.backend.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.backend.setsockopt(zmq.LINGER, 0)
+        # The bound the executors keep on what the router sends them. Without it one peer on this port could hand
+        # the router's loop a frame of any size: 1 GB took 0.9 GB of memory, and a stream of them 14 GB.
+        self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * limit + 65536)
         keep_alive(self.backend)  # a frozen executor, or a dead host, is disconnected (shared.service)
         bind(self.backend, cfg.router.backend, "router.backend")
         # An executor's connection closing (its process crashed or was killed: the OS closes its sockets; or it missed
@@ -134,6 +138,7 @@ class Router:
         self._too_many_frames = RateLimitedWarning()
         self._executor_full = RateLimitedWarning()
         self._bad_hello = RateLimitedWarning()
+        self._bad_reply = RateLimitedWarning()
         self._bad_table = RateLimitedWarning()
         self._bad_control = RateLimitedWarning()
         # Executor name -> the process token its last hello carried: a different one is a restart.
@@ -379,8 +384,7 @@ class Router:
         try:
             header = unpack_header(body[0].buffer)
         except ProtocolError:
-            log.warning("executor %s sent an undecodable reply header", frames[0].bytes)
-            return
+            return self._bad_reply.warn("executor %r sent an undecodable reply header", frames[0].bytes)
         rid = header_id(header)
         key = flight_key(robot, rid)
         flight = self.in_flight.get(key)
@@ -450,6 +454,8 @@ class Router:
         hello went to the new process and is failed with the old ones: at worst a retryable
         UNAVAILABLE (the new process's answer is then dropped as already answered).
         """
+        if len(frame) > MAX_HELLO_BYTES:  # decoded whole before its shape is checked: 16 MB took the loop 3-4 s
+            return self._bad_hello.warn("ignored a hello of %d bytes from executor %r", len(frame), identity)
         try:
             msg = control.unpack(frame)
             name = identity.decode()
