@@ -261,6 +261,10 @@ class RouterConfig:
     max_message_bytes: int = field(default=16 * 1024 * 1024, metadata=_check(
         lambda v: positive_number(v) and v <= MAX_MESSAGE_LIMIT, "expected a positive integer up to 4 GiB (2**32)"))
     request_timeout_s: float = field(default=30.0, metadata=_check(positive_number, "expected a positive number"))
+    # Requests one robot connection may have in flight; beyond it that robot's requests are answered OVERLOADED at
+    # once. A robot calling a few times a second has one or two; a runaway client loop would otherwise fill its
+    # model's executor queues and starve every other robot of that model.
+    max_in_flight_per_robot: int = field(default=64, metadata=_check(positive_number, "expected a positive integer"))
     metrics_port: int = field(default=9100, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
 
 

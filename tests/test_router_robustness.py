@@ -180,10 +180,42 @@ def test_a_stalled_executor_does_not_stall_the_router(tmp_path):
         assert not rt.router.in_flight
 
 
+def test_a_robot_flooding_requests_is_refused_beyond_its_share_and_others_are_served(tmp_path):
+    """One robot sends 200 requests at once to an executor that holds them: only max_in_flight_per_robot are
+    forwarded, the rest answered OVERLOADED at once, and another robot's request still reaches the executor. Before,
+    all 200 went into the executor's queue (a runaway client filled the model's queues; others got OVERLOADED)."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=60.0, max_in_flight_per_robot=8) as rt:
+        ex = rt.executor(b"ex0")
+        flood, other = rt.robot(b"flood"), rt.robot(b"other")
+        for i in range(200):
+            flood.send_multipart(infer_frames(f"f{i}"))
+        refused = set()
+        while len(refused) < 192 and flood.poll(2000):
+            rep = decode(flood.recv_multipart())
+            assert isinstance(rep, ErrorReply) and rep.code == ErrorCode.OVERLOADED, rep
+            assert "8 requests in flight" in rep.message, rep.message
+            refused.add(rep.id)
+        assert len(refused) == 192 and not flood.poll(300)
+        forwarded = []
+        while ex.poll(300):
+            forwarded.append(decode(ex.recv_multipart()[1:]).id)
+        assert sorted(forwarded) == sorted(f"f{i}" for i in range(200) if f"f{i}" not in refused)
+        other.send_multipart(infer_frames("o1"))
+        assert ex.poll(2000) and decode(ex.recv_multipart()[1:]).id == "o1"
+        # An answer gives the flooding robot room for one more.
+        actions = np.zeros((INFO.horizon, INFO.action_dim), np.float32)
+        ex.send_multipart([b"flood", *encode(InferReply(id=forwarded[0], model="toy-a", actions=actions))])
+        assert isinstance(decode(flood.recv_multipart()), InferReply)
+        flood.send_multipart(infer_frames("f-next"))
+        assert ex.poll(2000) and decode(ex.recv_multipart()[1:]).id == "f-next"
+        assert rt.router.in_flight.per_robot == {b"flood": 8, b"other": 1}
+
+
 def test_a_full_executor_falls_back_to_another(tmp_path):
     """ex0 stops reading: once its queue is full, its share of the traffic goes to ex1, nothing is refused."""
     table = RoutingTable(version=1, models={"toy-a": INFO}, routes={"toy-a": ["ex0", "ex1"]}, executors=["ex0", "ex1"])
-    with RouterThread(tmp_path, table) as rt:
+    # One robot connection stands for a fleet here: no cap on its own requests in flight.
+    with RouterThread(tmp_path, table, max_in_flight_per_robot=10_000) as rt:
         rt.executor(b"ex0", rcvhwm=10)  # never reads
         rt.answering_executor(b"ex1")
         robot = rt.robot(b"arm")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass
 
 import zmq
@@ -64,6 +65,37 @@ class InFlight:
     deadline_s: float | None = None
 
 
+class FlightTable(dict[FlightKey, InFlight]):
+    """The requests in flight, counted per robot connection as they come and go (router.max_in_flight_per_robot)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.per_robot: Counter[bytes] = Counter()
+
+    def __setitem__(self, key: FlightKey, flight: InFlight) -> None:
+        if key not in self:
+            self.per_robot[key[0]] += 1
+        super().__setitem__(key, flight)
+
+    def __delitem__(self, key: FlightKey) -> None:
+        super().__delitem__(key)
+        self._gone(key[0])
+
+    def pop(self, key: FlightKey, *default):
+        if key in self:
+            self._gone(key[0])
+        return super().pop(key, *default)
+
+    def clear(self) -> None:
+        super().clear()
+        self.per_robot.clear()
+
+    def _gone(self, robot: bytes) -> None:
+        self.per_robot[robot] -= 1
+        if not self.per_robot[robot]:
+            del self.per_robot[robot]  # robots come and go: keep only those with requests in flight
+
+
 @dataclass
 class RateLimitedWarning:
     """One kind of warning a sender can provoke at will: logged once per WARN_EVERY_S, with a count."""
@@ -85,7 +117,7 @@ class Router:
         self.ctx = context or zmq.Context.instance()
         self.routing = Routing()
         self._configured = frozenset(m.name for m in cfg.models)
-        self.in_flight: dict[FlightKey, InFlight] = {}
+        self.in_flight = FlightTable()
         self.stats = {"requests": 0, "replies": 0, "errors": 0}
         self.metrics = RouterMetrics()
         self.metrics.serve_models(self._configured)
@@ -139,6 +171,7 @@ class Router:
         self._executor_full = RateLimitedWarning()
         self._bad_hello = RateLimitedWarning()
         self._bad_reply = RateLimitedWarning()
+        self._robot_flooding = RateLimitedWarning()
         self._bad_table = RateLimitedWarning()
         self._bad_control = RateLimitedWarning()
         # Executor name -> the process token its last hello carried: a different one is a restart.
@@ -340,6 +373,12 @@ class Router:
                                      model)
         if len(self.in_flight) >= MAX_IN_FLIGHT:
             return self._reply_error(robot, rid, ErrorCode.OVERLOADED, "too many requests in flight", model)
+        most = self.cfg.router.max_in_flight_per_robot
+        if self.in_flight.per_robot[robot] >= most:
+            self._robot_flooding.warn("robot %r has %d requests in flight (router.max_in_flight_per_robot): refusing "
+                                      "more", robot, most)
+            return self._reply_error(robot, rid, ErrorCode.OVERLOADED,
+                                     f"this robot has {most} requests in flight, the most it may have", model)
         self.stats["requests"] += 1
         full: list[str] = []
         # A robot is pinned by its name, not its connection: two clients of one robot (and one restarted with a
