@@ -104,6 +104,20 @@ class Completion:
         return self.error is None
 
 
+def _float32_state(state: np.ndarray) -> np.ndarray:
+    """The state as the wire's float32. A complex state lost its imaginary part in the cast, silently, and finite
+    values beyond float32's range became infinities the server refused as "NaN or infinity": both are ValueErrors
+    (BAD_REQUEST) here, saying which."""
+    given = np.asarray(state)
+    if np.iscomplexobj(given):
+        raise ValueError(f"state: expected real numbers, got {given.dtype}")
+    with np.errstate(over="ignore"):
+        out = given.astype(np.float32)
+    if given.dtype.kind == "f" and not np.isfinite(out).all() and np.isfinite(given).all():
+        raise ValueError("state: a value is beyond float32's range (about 3.4e38)")
+    return out
+
+
 def _check_timeout(name: str, value: float) -> float:
     """A timeout in seconds: a number, not NaN (which no clock comparison ever ends), not negative."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value) or value < 0:
@@ -194,7 +208,7 @@ class RobotClient:
         rid = request_id if request_id is not None else f"{self.robot_id}-{self._session}-{next(self._ids)}"
         try:
             frames = encode(InferRequest(id=rid, robot=self.robot_id, model=model, images=dict(images),
-                                         state=np.asarray(state, dtype=np.float32), instruction=instruction))
+                                         state=_float32_state(state), instruction=instruction))
         except (TypeError, ValueError, OverflowError) as exc:
             # A dtype that cannot travel, text that is no UTF-8 (lone surrogates), an int id past 64 bits.
             raise RobionError(ErrorCode.BAD_REQUEST, str(exc), str(rid)) from None

@@ -161,6 +161,25 @@ def test_inputs_that_cannot_travel_are_robion_errors(images, instruction, messag
         assert exc.value.code == ErrorCode.BAD_REQUEST and c.pending() == 0
 
 
+@pytest.mark.parametrize("state,message", [
+    (np.full(8, 1 + 2j), "real numbers"),  # the cast to float32 dropped the imaginary part, silently
+    (np.full(8, 1e39), "beyond float32's range"),  # the server refused it as "NaN or infinity"
+])
+def test_a_state_the_wire_cannot_carry_faithfully_is_refused_saying_why(state, message):
+    images = {"cam0": np.zeros((8, 8, 3), np.uint8)}
+    with inproc_router("odd-state") as (ctx, router):
+        with RobotClient("inproc://odd-state", robot_id="odd", timeout_s=1.0, context=ctx) as c:
+            with pytest.raises(RobionError, match=message) as exc:
+                c.submit("toy-a", images, state, "go")
+            assert exc.value.code == ErrorCode.BAD_REQUEST and c.pending() == 0
+            # float64 within range, ints and lists still travel, as float32 (NaN is the server's to refuse)
+            for i, fine in enumerate((np.full(8, 1e38), np.arange(8), [0.5] * 8, np.full(8, np.nan))):
+                c.submit("toy-a", images, fine, request_id=i)
+                assert router.poll(5000)
+                sent = decode(router.recv_multipart()[1:]).state
+                assert sent.dtype == np.float32 and np.array_equal(sent, np.asarray(fine, np.float32), equal_nan=True)
+
+
 def test_an_empty_id_is_refused_before_sending():
     """"" is the id of the router's answers to requests it could not read: a request sent under it could be
     handed another request's error."""
