@@ -42,6 +42,10 @@ CASES = {
     "traffic max batch": (["traffic.py", "strategies", "--devices", "cpu", "--max-batch", "0"], "--max-batch"),
     "router_hop iters": (["router_hop.py", "--iters", "0"], "--iters"),
     "router_hop out": (["router_hop.py", "--iters", "5", "--out", "/nonexistent/r.json"], "--out"),
+    "router_flood requests": (["router_flood.py", "--requests", "0"], "--requests"),
+    "router_flood rounds": (["router_flood.py", "--rounds", "0"], "--rounds"),
+    "router_flood hz": (["router_flood.py", "--hz", "nan"], "--hz"),
+    "router_flood out": (["router_flood.py", "--out", "/nonexistent/r.json"], "--out"),
     "solver_speed instances": (["solver_speed.py", "--instances", "0"], "--instances"),
     "solver_speed time limit": (["solver_speed.py", "--time-limit", "0"], "--time-limit"),
 }
