@@ -165,9 +165,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return plan_main(args.rest)  # its own parser: `robion plan --help` is its help
 
 
-BENCHMARKS = {"capacity": "capacity.py", "router-hop": "router_hop.py", "solver": "solver_speed.py",
-              "models": "model_latency.py", "engine-gap": "engine_gap.py", "colocation": "colocation.py",
-              "traffic": "traffic.py", "interdisagg": "interdisagg.py"}
+BENCHMARKS = {"capacity": "capacity.py", "router-hop": "router_hop.py", "router-flood": "router_flood.py",
+              "solver": "solver_speed.py", "models": "model_latency.py", "engine-gap": "engine_gap.py",
+              "colocation": "colocation.py", "traffic": "traffic.py", "interdisagg": "interdisagg.py"}
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
