@@ -113,8 +113,10 @@ def _float32_state(state: np.ndarray) -> np.ndarray:
         raise ValueError(f"state: expected real numbers, got {given.dtype}")
     with np.errstate(over="ignore"):
         out = given.astype(np.float32)
-    if given.dtype.kind == "f" and not np.isfinite(out).all() and np.isfinite(given).all():
-        raise ValueError("state: a value is beyond float32's range (about 3.4e38)")
+        # Python ints past int64 come as an object array: float64 holds them (or raises OverflowError) and tells
+        # a value too large for float32 from one that was NaN or infinite to begin with.
+        if not np.isfinite(out).all() and np.isfinite(given.astype(np.float64)).all():
+            raise ValueError("state: a value is beyond float32's range (about 3.4e38)")
     return out
 
 

@@ -164,6 +164,7 @@ def test_inputs_that_cannot_travel_are_robion_errors(images, instruction, messag
 @pytest.mark.parametrize("state,message", [
     (np.full(8, 1 + 2j), "real numbers"),  # the cast to float32 dropped the imaginary part, silently
     (np.full(8, 1e39), "beyond float32's range"),  # the server refused it as "NaN or infinity"
+    ([10**39] * 8, "beyond float32's range"),  # ints past int64: an object array
 ])
 def test_a_state_the_wire_cannot_carry_faithfully_is_refused_saying_why(state, message):
     images = {"cam0": np.zeros((8, 8, 3), np.uint8)}

@@ -513,6 +513,20 @@ def test_the_bracketed_capacity_diagnosis_says_what_the_exact_one_says(monkeypat
     assert bracketed == solver_mod.diagnose_capacity(p)
 
 
+def test_the_bracketed_diagnosis_offers_no_full_gpu_as_spare(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Nine GPUs exactly full (1 and p - 1 robots of limit p) beside a plainly short model: the rounded-down flows
+    read those GPUs a hair under full, and the hint offered them as spare ("0.00 GPU-equivalents spare")."""
+    from services.controlplane import solver as solver_mod
+
+    primes = [101, 103, 107, 109, 113, 127, 131, 137, 139]
+    models = [ModelDemand(f"{k}{i}", c, n, (i,)) for i, c in enumerate(primes) for k, n in (("a", 1), ("b", c - 1))]
+    p = PlanProblem(len(primes) + 1, (*models, ModelDemand("big", 1, 3, (len(primes),))))
+    bracketed = solver_mod.diagnose_capacity(p)
+    assert "spare" not in bracketed
+    monkeypatch.setattr(solver_mod, "_max_flow_fast", lambda *args: None)
+    assert bracketed == solver_mod.diagnose_capacity(p)
+
+
 def test_limits_whose_lcm_overflows_still_get_the_greedy_plan() -> None:
     """Sixteen co-hosted models with coprime limits: the exact capacity constraint overflows int64, and the
     integer program refused the input although the greedy plan (checked exactly) was within the limits."""

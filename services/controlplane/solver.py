@@ -464,6 +464,7 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
         return None if found is None else (*found, sum(c for _, _, c in edges[:M]))
 
     lcm = scale
+    slack = Fraction(0)  # how far below full a GPU that is full may read (the bracket's rounding)
     exact_demand = lambda m: m.robots * (lcm // m.limit)  # noqa: E731
     solved = relaxation(network(lcm, exact_demand))
     if solved is None:
@@ -480,7 +481,9 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
                 return None
             down = relaxation(network(approx, lambda m: m.robots * approx // m.limit))
             if down is not None and down[0] < down[3]:
-                solved, scale = down, approx
+                # Each model's demand lost less than one unit to the rounding, so a host set's flow (filled into its
+                # GPUs in index order below) reads at most M units short.
+                solved, scale, slack = down, approx, Fraction(M, approx)
     if solved is None:
         solved = relaxation(network(lcm, exact_demand), exact=True)
     flow, reach, used, demand = solved
@@ -525,7 +528,7 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
                     f"    {m.name} alone needs {_fmt(m.gpu_equivalents)} but its {_gpu_list(m.gpus)} "
                     f"offer only {len(m.gpus)}.00."
                 )
-        spare = [j for j in range(G) if j not in hosts and gpu_used[j] < 1]
+        spare = [j for j in range(G) if j not in hosts and gpu_used[j] < 1 - slack]
         add = math.ceil(need - have)
         hint = f"    Add at least {add} GPU{'s' if add > 1 else ''} hosting {names}"
         if spare:
