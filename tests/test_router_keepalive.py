@@ -17,14 +17,14 @@ import numpy as np
 import pytest
 import zmq
 
-from shared import service
+from shared import control, service
 from shared.client import RobionError, RobotClient
 from shared.cluster import LocalCluster, control_status
 from shared.config import load_config
 from shared.protocol import ErrorCode, ErrorReply, decode
 from tests.helpers import cluster_config, free_ports, wait_for
 from tests.test_executor_io import Harness
-from tests.test_executor_reconnect import hellos_until
+from tests.test_executor_reconnect import hellos_until, said
 from tests.test_router_restart import LONG_TIMEOUT_S, ResettingProxy, executor_behind_proxy, held_request
 from tests.test_router_robustness import RouterThread, one_executor_table
 
@@ -68,9 +68,10 @@ def test_the_executor_redials_a_router_that_went_silent(tmp_path, monkeypatch):
         h.router.setsockopt(zmq.ROUTER_HANDOVER, 1)  # as the real router: a redial takes the name over
         hellos_until(h.router, time.monotonic() + 0.5)  # the start-up hellos
         proxy.freeze()
-        expected = {"kind": "executor_hello", "executor": "ex0", "instance": h.io.instance}
+        # (the hellos of every heartbeat carry the first connection's number, 1)
+        expected = {"kind": "executor_hello", "executor": "ex0", "instance": h.io.instance, "connection": 2}
         got = hellos_until(h.router, time.monotonic() + 10.0, stop_at=expected)
-        assert expected in got, f"no hello on a new connection within 10 s: {got}"
+        assert said(got, expected), f"no hello on a new connection within 10 s: {got}"
         h.send(h.request("after-redial"))
         assert h.router.poll(10_000), "no reply on the new connection"
     finally:
@@ -160,3 +161,24 @@ def test_an_executor_gets_its_name_back_from_a_connection_that_took_it(tmp_path,
 
         assert wait_for(served_again, 20, 0.2), "toy-b's only executor was never reached again"
         assert "ex0" in control_status(cfg.control.bind)["table"]["routes"]["toy-b"]
+
+
+def test_a_superseded_executor_stops_without_leaving_routing_for_its_successor(tmp_path):
+    """Told by the router that a later process has its name, the executor stops serving and sends the control plane
+    neither a drain nor a deregister, which would take that process out of routing."""
+    h = Harness(tmp_path, control_plane=True)
+    try:
+        h.control_messages(0.5)  # its registration and first heartbeats
+        h.router.send_multipart([b"ex0", b"", control.pack("superseded", executor="ex0", instance=h.io.instance)])
+        assert wait_for(lambda: not h.thread.is_alive(), 5), "it kept serving"
+        assert h.io.superseded and not h.io.fatal.is_set()
+        h.closed = True  # closed here, as main does after run(): withdraw() skipped, then close()
+        h.slot.stop()
+        h.io.close()
+        kinds = {m.get("kind") for m in h.control_messages(1.0)}
+        assert not kinds & {"drain", "deregister"}, kinds
+        h.router.close()
+        h.control.close()
+        h.ctx.term()
+    finally:
+        h.close()

@@ -284,6 +284,57 @@ def test_an_executor_sending_a_frame_beyond_the_bound_is_disconnected(tmp_path):
         events.close(linger=0)
 
 
+def test_requests_an_executor_lost_with_its_old_connection_are_answered(tmp_path, monkeypatch):
+    """The executor comes back on a new connection (a reset, or the router's heartbeat timeout after it froze): what
+    was queued for it on the old one is gone. r1 (never answered) is answered UNAVAILABLE RECONNECT_ANSWER_S after the
+    reconnect, where it waited request_timeout_s; r2, from before too but answered in time, and r3, sent after, are
+    the executor's to answer."""
+    monkeypatch.setattr(frontend, "RECONNECT_ANSWER_S", 1.0, raising=False)
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        ex = rt.executor(b"ex0")
+        hello(ex, instance=OLD, connection=1)
+        robot = rt.robot(b"arm")
+        held_request(rt, robot, ex, "r1")
+        held_request(rt, robot, ex, "r2")
+        time.sleep(0.3)  # hellos of the same connection change nothing
+        hello(ex, instance=OLD, connection=1)
+        assert_no_answer(robot, 1.5)
+        t0 = time.monotonic()
+        hello(ex, instance=OLD, connection=2)
+        time.sleep(0.3)  # read before r3 goes out (one forwarded before the hello is read counts as from before)
+        held_request(rt, robot, ex, "r3")
+        actions = np.zeros((INFO.horizon, INFO.action_dim), np.float32)
+        ex.send_multipart([b"arm", *encode(InferReply(id="r2", model="toy-a", actions=actions))])
+        assert isinstance(decode(robot.recv_multipart()), InferReply)
+        unavailable_answers(robot, {"r1"}, t0, ("lost with its old connection",))
+        assert time.monotonic() - t0 >= 0.9
+        assert [k[2] for k in rt.router.in_flight] == ["r3"]
+        assert_no_answer(robot, 1.5)  # r3 is left to the executor
+
+
+def test_a_superseded_process_is_told_to_exit_and_fails_nothing(tmp_path):
+    """A frozen process comes back after its successor took the name: with both redialling whenever the other took
+    it, each passed for the other's restart every few seconds and failed its requests. The earlier one is told to
+    exit, and its successor's requests are left alone."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+        old = rt.executor(b"ex0")
+        hello(old, instance=OLD, connection=1)
+        time.sleep(0.3)  # read before the next connection takes the name (its pipe's unread messages go with it)
+        new = rt.executor(b"ex0")
+        hello(new, instance=NEW, connection=1)  # the successor: a restart
+        time.sleep(0.3)
+        robot = rt.robot(b"arm")
+        held_request(rt, robot, new, "r1")
+        back = rt.executor(b"ex0")  # the earlier process redials and takes the name at the socket
+        hello(back, instance=OLD, connection=2)
+        assert back.poll(2000), "the superseded process was told nothing"
+        envelope, frame = back.recv_multipart()
+        assert envelope == b"" and control.unpack(frame) == {"kind": "superseded", "executor": "ex0", "instance": OLD}
+        assert rt.router._instances["ex0"] == NEW
+        assert_no_answer(robot, 1.0)  # r1 was not failed as if the successor had restarted
+        assert [k[2] for k in rt.router.in_flight] == ["r1"]
+
+
 def test_the_executor_says_hello_with_its_instance(tmp_path):
     """A real ExecutorIO (toy model on the CPU): its hello names it and carries its process token."""
     hellos: list[list[bytes]] = []

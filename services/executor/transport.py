@@ -130,6 +130,8 @@ class ExecutorIO:
         self._reregister = threading.Event()
         self.fatal = threading.Event()  # serving cannot go on (a reload and its fallback failed, a sticky fault)
         self.fatal_reason = ""
+        self._connection = 0  # connections to the router made so far (the hello's connection number)
+        self.superseded = False  # the router said a later process has this name: stop, leaving routing to it
         self._failed_in_row = 0  # requests the engine failed since it last answered one with actions
         self._failed_batches_in_row = 0  # deliveries of results holding those failures
         self._poller: zmq.Poller | None = None
@@ -226,9 +228,12 @@ class ExecutorIO:
     def _hello(self) -> None:
         """Say hello to the router so its ROUTER socket knows our identity before the first request; the
         instance tells it a restarted process from this one, so it fails what the old one never answers."""
+        # The connection number tells the router a reconnect from the same process (RECONNECT_ANSWER_S there);
+        # none before the first connect is reported, whose hello repeats this one.
+        fields = {"connection": self._connection} if self._connection else {}
         try:
             self.backend.send_multipart([b"", control.pack("executor_hello", executor=self.name,
-                                                           instance=self.instance)], zmq.NOBLOCK)
+                                                           instance=self.instance, **fields)], zmq.NOBLOCK)
         except zmq.Again:  # the pipe to the router is full: requests are flowing, and the next registration repeats it
             log.debug("router pipe full: hello not sent")
 
@@ -248,9 +253,22 @@ class ExecutorIO:
             self._take_requests(ready)
             self._flush_unsent()
 
+    def _from_router(self, frame: memoryview) -> None:
+        try:
+            msg = control.unpack(frame)
+        except ProtocolError:
+            return log.warning("ignored an unreadable message from the router")
+        if msg.get("kind") == "superseded" and msg.get("instance") == self.instance and not self.superseded:
+            # A later process took this name while this one was frozen or cut off: serving on would have both take
+            # the name from each other every few seconds, each failing the other's requests. It leaves without a
+            # drain or deregister, which would take the name's successor out of routing.
+            log.critical("another process serves as %s now (this one was frozen or cut off); exiting", self.name)
+            self.superseded = True
+
     def _take_requests(self, ready: dict) -> None:
         """Say hello again after a reconnect, and take up to 256 requests from the router (``ready``: a poll's)."""
         if self.backend_events in ready and connected_again(self.backend_events):
+            self._connection += 1
             self._hello()  # the same instance again to a router that knows it changes nothing
         if self.backend in ready:
             for _ in range(256):
@@ -267,7 +285,7 @@ class ExecutorIO:
             self._poller.register(s, zmq.POLLIN)
         self.register()
         self._last_beat = time.monotonic()
-        while not stop.is_set() and not self.fatal.is_set():
+        while not stop.is_set() and not self.fatal.is_set() and not self.superseded:
             self._serve_once()
 
     def _serve_once(self, timeout_ms: int = 50) -> None:
@@ -512,8 +530,9 @@ class ExecutorIO:
             self._unsent.popleft()
 
     def close(self) -> None:
-        # Leave the routing table now rather than after missed heartbeats.
-        self._ctl_send("deregister", executor=self.name)
+        # Leave the routing table now rather than after missed heartbeats (a superseded process's name is another's).
+        if not self.superseded:
+            self._ctl_send("deregister", executor=self.name)
         self.ctl.setsockopt(zmq.LINGER, 500)
         self.backend.disable_monitor()
         self.ctl.disable_monitor()
@@ -616,6 +635,8 @@ class ExecutorIO:
     def _on_request(self, frames: list[zmq.Frame]) -> None:
         if len(frames) < 2:
             return  # the router's probe of our connection (one empty frame): not a request
+        if not frames[0].bytes:  # the router's own message: no robot's identity is empty
+            return self._from_router(frames[1].buffer)
         arrival = self._last_request = time.monotonic()
         envelope = frames[0].bytes
         body = [f.buffer for f in frames[1:]]

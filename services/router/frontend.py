@@ -45,6 +45,12 @@ WARN_EVERY_S = 5.0  # refusals a peer can trigger at will are logged at most thi
 # and answers them on the new connection.
 PROBE_AFTER_DISCONNECT_S = 1.5
 RECONNECT_GRACE_S = 0.5
+# An executor back on a new connection (its hello says so) still holds the requests it had read; those that were
+# queued for it on the old connection are gone. Which is which cannot be told here, so each request from before the
+# reconnect that it has not answered this long after is answered UNAVAILABLE (a frozen executor's 60 queued requests
+# waited request_timeout_s, 30 s).
+RECONNECT_ANSWER_S = 3.0
+MAX_SUPERSEDED = 8  # earlier instances remembered per executor name
 
 # A request in flight: (robot, id type, id). The id keeps its wire type, so 7 and "7" from one
 # robot are two requests; the type is in the key so that stays true whatever the ids compare as.
@@ -63,6 +69,9 @@ class InFlight:
     # The model's deadline when the request went out (None: no table yet). Its reply is judged by it: by then an
     # apply may have changed the deadline, or taken the model out of the table.
     deadline_s: float | None = None
+    # When to answer it UNAVAILABLE if its executor has not: set when the executor came back on a new connection,
+    # which may have lost it (see RECONNECT_ANSWER_S).
+    fail_at: float | None = None
 
 
 class FlightTable(dict[FlightKey, InFlight]):
@@ -176,6 +185,9 @@ class Router:
         self._bad_control = RateLimitedWarning()
         # Executor name -> the process token its last hello carried: a different one is a restart.
         self._instances: dict[str, str] = {}
+        self._connections: dict[str, int | None] = {}  # executor name -> the connection number of its last hello
+        self._superseded: dict[str, list[str]] = {}  # executor name -> instances a restart replaced, newest last
+        self._superseded_hello = RateLimitedWarning()
         # The table kept may be a control plane's that has since restarted (it sent its empty v0, or we
         # reconnected): the new one numbers its tables from v1 again, so its next one is installed whatever its version.
         self._table_outlived_plane = False
@@ -446,12 +458,14 @@ class Router:
 
     def _expire(self, now: float) -> None:
         timeout = self.cfg.router.request_timeout_s
-        stale = [k for k, f in self.in_flight.items() if now - f.sent_at > timeout]
+        stale = [k for k, f in self.in_flight.items()
+                 if now - f.sent_at > timeout or (f.fail_at is not None and now >= f.fail_at)]
         for key in stale:
             f = self.in_flight.pop(key)
             robot, _, rid = key
-            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, f"executor {f.executor} did not answer within {timeout} s",
-                              f.model)
+            why = (f"executor {f.executor} did not answer within {timeout} s" if f.fail_at is None or now < f.fail_at
+                   else f"executor {f.executor} reconnected and did not answer it: lost with its old connection")
+            self._reply_error(robot, rid, ErrorCode.UNAVAILABLE, why, f.model)
         if stale:
             self.metrics.in_flight.set(len(self.in_flight))
 
@@ -507,16 +521,58 @@ class Router:
                                         identity, shown(msg.get("kind")), shown(msg.get("executor")), shown(instance))
         if instance is None:
             return  # an executor from before the instance field: a restart cannot be told
+        connection = msg.get("connection")
+        connection = connection if isinstance(connection, int) and not isinstance(connection, bool) else None
+        if instance in self._superseded.get(name, ()):
+            # An earlier process of this name, alive again (it was frozen, or its host cut off) after a successor
+            # took over: with both redialling whenever the other takes the name, each would pass for the other's
+            # restart every few seconds, failing its requests. The earlier one is told to exit.
+            self._superseded_hello.warn("executor %s: a superseded process (instance %s) is back; told it to exit",
+                                        name, instance)
+            self._send_to_executor(name, control.pack("superseded", executor=name, instance=instance))
+            return
         known = self._instances.get(name)
         if known == instance:
-            return  # the same process again (it says hello each time it registers)
+            # The same process again (it says hello each heartbeat). On a new connection of its own (a reset, or a
+            # heartbeat timeout after a freeze), what was queued for it on the old one is gone with it: its requests
+            # from before still unanswered RECONNECT_ANSWER_S later are failed, not left to request_timeout_s.
+            last = self._connections.get(name)
+            self._connections[name] = connection
+            if connection is not None and last is not None and connection != last:
+                self._mark_lost_unless_answered(name)
+            return
         if known is None and len(self._instances) >= MAX_EXECUTOR_INSTANCES:
-            self._instances.clear()  # peers inventing names: forget them rather than grow without bound
+            # peers inventing names: forget them rather than grow without bound
+            self._instances.clear()
+            self._connections.clear()
+            self._superseded.clear()
         self._instances[name] = instance
+        self._connections[name] = connection
         if known is None:
             return  # the first hello of the name this router has seen: nothing to compare with
+        superseded = self._superseded.setdefault(name, [])
+        superseded.append(known)
+        del superseded[:-MAX_SUPERSEDED]
         log.info("executor %s restarted (instance %s -> %s)", name, known, instance)
         self._fail_executor(name, "restarted")
+
+    def _mark_lost_unless_answered(self, executor: str) -> None:
+        fail_at = time.monotonic() + RECONNECT_ANSWER_S
+        marked = 0
+        for flight in self.in_flight.values():
+            if flight.executor == executor and flight.fail_at is None:
+                flight.fail_at = fail_at
+                marked += 1
+        if marked:
+            log.info("executor %s reconnected with %d requests in flight: those it does not answer within %.0f s are "
+                     "answered UNAVAILABLE", executor, marked, RECONNECT_ANSWER_S)
+
+    def _send_to_executor(self, executor: str, frame: bytes) -> None:
+        """A message of the router's own to an executor: an empty envelope, which no robot's identity is."""
+        try:
+            self.backend.send_multipart([executor.encode(), b"", frame], flags=zmq.NOBLOCK)
+        except zmq.ZMQError:
+            pass  # gone again, or not reading: its next hello asks again
 
     # ------------------------------------------------------------------ control plane
 
