@@ -46,12 +46,13 @@ def setup_logging(name: str, level: str) -> None:
                         format=f"%(asctime)s {escaped} %(levelname)s %(name)s: %(message)s")
 
 
-# ZMTP heartbeats on the router-executor connection, set on both ends. A peer whose host lost power or its network, or
-# whose process is frozen (SIGSTOP, a paused VM or container), closes nothing: without them its connection stayed up
-# for good, the router kept sending it requests that waited out router.request_timeout_s, and an executor never
-# redialled a router whose host had come back. libzmq's I/O thread answers the pings, so a busy Python thread holding
-# the GIL does not miss them. A missed one (no traffic for HEARTBEAT_TIMEOUT_MS after a ping) closes the connection,
-# which the router handles as a crash and the executor as a reset (it redials).
+# ZMTP heartbeats on the router-executor connection, set on both ends, and on the executor's connection to the
+# control plane. A peer whose host lost power or its network, or whose process is frozen (SIGSTOP, a paused VM or
+# container), closes nothing: without them its connection stayed up for good, the router kept sending it requests
+# that waited out router.request_timeout_s, and an executor never redialled a router whose host had come back.
+# libzmq's I/O thread answers the pings, so a busy Python thread holding the GIL does not miss them. A missed one (no
+# traffic for HEARTBEAT_TIMEOUT_MS after a ping) closes the connection, which the router handles as a crash and the
+# executor as a reset (it redials).
 HEARTBEAT_IVL_MS = 1000
 HEARTBEAT_TIMEOUT_MS = 3000
 

@@ -173,8 +173,8 @@ class ExecutorIO:
         self.ctl = self.ctx.socket(zmq.DEALER)
         self.ctl.setsockopt(zmq.IDENTITY, name.encode())  # the control plane addresses load requests by name
         self.ctl.setsockopt(zmq.LINGER, 0)
-        # A connection that another peer's took this name from (ROUTER_HANDOVER at the plane detaches it without
-        # closing it) is found and redialled: until then every heartbeat went into it, and the plane dropped us.
+        # A connection whose name another peer took (ROUTER_HANDOVER at the plane detaches it without closing it) is
+        # found and redialled: until then every heartbeat went into it, and the plane dropped us.
         keep_alive(self.ctl)
         # Whether the control plane's connection is up (_ctl_connected): a message to a plane that is down is
         # queued, not refused, so only this tells withdraw() not to wait for a drain's answer that cannot come.

@@ -47,8 +47,8 @@ PROBE_AFTER_DISCONNECT_S = 1.5
 RECONNECT_GRACE_S = 0.5
 # An executor back on a new connection (its hello says so) still holds the requests it had read; those that were
 # queued for it on the old connection are gone. Which is which cannot be told here, so each request from before the
-# reconnect that it has not answered this long after is answered UNAVAILABLE (a frozen executor's 60 queued requests
-# waited request_timeout_s, 30 s).
+# reconnect's hello was read (one forwarded on the new connection just before counts too) that it has not answered
+# this long after is answered UNAVAILABLE (a frozen executor's 60 queued requests waited request_timeout_s, 30 s).
 RECONNECT_ANSWER_S = 3.0
 MAX_SUPERSEDED = 8  # earlier instances remembered per executor name
 
