@@ -265,6 +265,11 @@ class RouterConfig:
     # once. A robot calling a few times a second has one or two; a runaway client loop would otherwise fill its
     # model's executor queues and starve every other robot of that model.
     max_in_flight_per_robot: int = field(default=64, metadata=_check(positive_number, "expected a positive integer"))
+    # Heartbeats between router and executors: a connection silent this long after a ping is closed (a frozen
+    # executor or router, a dead host, a name taken by another connection); pings go every third of it. 0: none.
+    # Raise it where one request takes seconds to cross the link: a ping waits behind the data before it.
+    keepalive_s: float = field(default=3.0, metadata=_check(lambda v: 0 <= v <= 3600, "expected seconds from 0 (off) "
+                                                                                   "to 3600"))
     metrics_port: int = field(default=9100, metadata=_check(_port, "expected a port number 0-65535 (0 disables)"))
 
 

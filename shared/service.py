@@ -51,16 +51,14 @@ def setup_logging(name: str, level: str) -> None:
 # container), closes nothing: without them its connection stayed up for good, the router kept sending it requests
 # that waited out router.request_timeout_s, and an executor never redialled a router whose host had come back.
 # libzmq's I/O thread answers the pings, so a busy Python thread holding the GIL does not miss them. A missed one (no
-# traffic for HEARTBEAT_TIMEOUT_MS after a ping) closes the connection, which the router handles as a crash and the
-# executor as a reset (it redials).
-HEARTBEAT_IVL_MS = 1000
-HEARTBEAT_TIMEOUT_MS = 3000
-
-
-def keep_alive(sock: zmq.Socket) -> None:
-    """Ping the peers of ``sock`` every HEARTBEAT_IVL_MS; close a connection silent for HEARTBEAT_TIMEOUT_MS."""
-    sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
-    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
+# traffic for the timeout after a ping) closes the connection, which the router handles as a crash and the executor
+# as a reset (it redials).
+def keep_alive(sock: zmq.Socket, timeout_s: float) -> None:
+    """Ping the peers of ``sock`` every third of ``timeout_s``; close a connection silent for ``timeout_s`` after a
+    ping (router.keepalive_s; 0: no heartbeats)."""
+    if timeout_s > 0:
+        sock.setsockopt(zmq.HEARTBEAT_IVL, max(1, round(timeout_s * 1000 / 3)))
+        sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, max(1, round(timeout_s * 1000)))
 
 
 def ipv6_ready(sock: zmq.Socket, address: str) -> None:

@@ -110,6 +110,9 @@ def test_defaults():
                                                                  "too"),
     # twice the limit overflowed a C long in the sockets' frame limit (OverflowError traceback)
     (lambda d: d.update(router={"max_message_bytes": 2 ** 62}), "router.max_message_bytes: expected a positive"),
+    (lambda d: d.update(router={"keepalive_s": -1}), "router.keepalive_s: expected seconds from 0 (off)"),
+    (lambda d: d.update(router={"keepalive_s": True}), "router.keepalive_s: expected a number"),
+    (lambda d: d.update(router={"max_in_flight_per_robot": 0}), "router.max_in_flight_per_robot: expected a positive"),
     # the plane re-solves before answering a drain or apply, and `robion ctl` waits that long: a limit of 1e9 s
     # left the CLI an unusable timeout
     (lambda d: d.update(control={"solve_time_limit_s": 1e9}), "control.solve_time_limit_s: expected a positive number"),

@@ -3,10 +3,12 @@ host that lost power or its network. The OS closes nothing, so only the ZMTP hea
 tell the router; it then fails the executor's requests in flight as it does a crashed one's, instead of leaving them
 to router.request_timeout_s, and the model's other executors take the traffic.
 
-The first test freezes a TCP proxy between the router (its real loop in a thread) and a stand-in executor, with short
-heartbeats; the second freezes one between a real executor's I/O loop and a stand-in router, which the executor must
-redial (a router whose host died and came back). The third stops a real executor process of a real cluster, the control plane killed first (with the plane
-up, its own heartbeats find the frozen executor within control.heartbeat_s x missed_heartbeats)."""
+The first tests freeze a TCP proxy between the router (its real loop in a thread) and a stand-in executor, with
+short heartbeats (router.keepalive_s), or between a real executor's I/O loop and a stand-in router, which the
+executor must redial (a router whose host died and came back). Another stops a real executor process of a real
+cluster, the control plane killed first (with the plane up, its own heartbeats find the frozen executor within
+control.heartbeat_s x missed_heartbeats). The last ones take an executor's name from it, at the router or the
+control plane, as a second process of that name would."""
 
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import numpy as np
 import pytest
 import zmq
 
-from shared import control, service
+from shared import control
 from shared.client import RobionError, RobotClient
 from shared.cluster import LocalCluster, control_status
 from shared.config import load_config
@@ -29,12 +31,10 @@ from tests.test_router_restart import LONG_TIMEOUT_S, ResettingProxy, executor_b
 from tests.test_router_robustness import RouterThread, one_executor_table
 
 
-def test_a_frozen_connection_is_failed_after_the_heartbeat_timeout(tmp_path, monkeypatch):
+def test_a_frozen_connection_is_failed_after_the_heartbeat_timeout(tmp_path):
     """The proxy stops passing bytes both ways and closes nothing: the router's pings go unanswered, so it closes the
-    connection after HEARTBEAT_TIMEOUT_MS and answers the request UNAVAILABLE, long before request_timeout_s."""
-    monkeypatch.setattr(service, "HEARTBEAT_IVL_MS", 200, raising=False)
-    monkeypatch.setattr(service, "HEARTBEAT_TIMEOUT_MS", 600, raising=False)
-    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S) as rt:
+    connection after router.keepalive_s and answers the request UNAVAILABLE, long before request_timeout_s."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S, keepalive_s=0.6) as rt:
         proxy, ex = executor_behind_proxy(rt)
         try:
             robot = rt.robot(b"arm")
@@ -53,16 +53,30 @@ def test_a_frozen_connection_is_failed_after_the_heartbeat_timeout(tmp_path, mon
             proxy.close()
 
 
-def test_the_executor_redials_a_router_that_went_silent(tmp_path, monkeypatch):
+def test_keepalive_0_turns_the_heartbeats_off(tmp_path):
+    """router.keepalive_s: 0 (for links where a request takes longer to cross than any timeout): a frozen connection
+    stays up, and its request waits for request_timeout_s as before the heartbeats."""
+    with RouterThread(tmp_path, one_executor_table(), request_timeout_s=LONG_TIMEOUT_S, keepalive_s=0) as rt:
+        proxy, ex = executor_behind_proxy(rt)
+        try:
+            robot = rt.robot(b"arm")
+            held_request(rt, robot, ex, "r1")
+            proxy.freeze()
+            assert not robot.poll(3000), decode(robot.recv_multipart())
+            assert rt.router.in_flight
+        finally:
+            proxy.close()
+
+
+def test_the_executor_redials_a_router_that_went_silent(tmp_path):
     """The connection to the router freezes: the executor's pings go unanswered, so it closes the connection and
     redials (through the proxy, whose new connections pass bytes), says hello again and serves through it. Before,
     it kept the frozen connection for good: a router whose host died and came back never heard from it again."""
-    monkeypatch.setattr(service, "HEARTBEAT_IVL_MS", 200, raising=False)
-    monkeypatch.setattr(service, "HEARTBEAT_TIMEOUT_MS", 600, raising=False)
     rp, bp, pp = free_ports(3)
     proxy = ResettingProxy(bp)  # listens on a port of its own; the executor dials it, not the router's backend
     router = {"bind": f"tcp://127.0.0.1:{rp}", "backend": f"tcp://127.0.0.1:{bp}",
-              "backend_connect": f"tcp://127.0.0.1:{proxy.port}", "max_message_bytes": 1_000_000, "metrics_port": 0}
+              "backend_connect": f"tcp://127.0.0.1:{proxy.port}", "max_message_bytes": 1_000_000, "metrics_port": 0,
+              "keepalive_s": 0.6}
     h = Harness(tmp_path, router=router)
     try:
         h.router.setsockopt(zmq.ROUTER_HANDOVER, 1)  # as the real router: a redial takes the name over

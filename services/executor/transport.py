@@ -157,7 +157,7 @@ class ExecutorIO:
         self.backend.setsockopt(zmq.IDENTITY, name.encode())
         self.backend.setsockopt(zmq.LINGER, 1000)
         self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * cfg.router.max_message_bytes + 65536)
-        keep_alive(self.backend)  # a router whose host died is redialled once it is back (shared.service)
+        keep_alive(self.backend, cfg.router.keepalive_s)  # a router whose host died is redialled once it is back (shared.service)
         # Each (re)connect to the router is reported here, so a restarted router hears our hello (and
         # instance) at once: otherwise it would learn our instance only at our next registration, and
         # could not tell a later restart of ours from our first hello (requests in flight to the old
@@ -175,7 +175,7 @@ class ExecutorIO:
         self.ctl.setsockopt(zmq.LINGER, 0)
         # A connection whose name another peer took (ROUTER_HANDOVER at the plane detaches it without closing it) is
         # found and redialled: until then every heartbeat went into it, and the plane dropped us.
-        keep_alive(self.ctl)
+        keep_alive(self.ctl, cfg.router.keepalive_s)
         # Whether the control plane's connection is up (_ctl_connected): a message to a plane that is down is
         # queued, not refused, so only this tells withdraw() not to wait for a drain's answer that cannot come.
         self.ctl_events = self.ctl.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
