@@ -19,9 +19,12 @@ control plane -> executor: load {models: [model config], load_id}  (a placement 
                            the executor registers again once it is over, its `load` naming load_id)
 operator -> control plane: apply {config}            -> applied {steps, version, unhosted}
                            drain / resume {executor} -> ok {version}
-executor -> router (backend, empty robot frame): executor_hello {executor, instance}  (not answered; the
-                           instance is the process's token, as in register: a new one under a known name
-                           is a restarted executor, and the router answers its requests in flight UNAVAILABLE)
+executor -> router (backend, empty robot frame): executor_hello {executor, instance, connection?}  (not
+                           answered; at each connect and each heartbeat while connected. The instance is the
+                           process's token, as in register: a new one under a known name is a restarted
+                           executor, and the router answers its requests in flight UNAVAILABLE. connection
+                           counts the process's connects: a new number of a known instance is a reconnect,
+                           and its requests from before still unanswered 3 s later are answered UNAVAILABLE)
 
 A message the control plane cannot act on is answered error {code, message}: `message` is for
 people and names the bad field; `code` is stable (ControlError). A well-formed heartbeat or

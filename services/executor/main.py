@@ -143,17 +143,12 @@ def main(argv: list[str] | None = None) -> int:
                      resolve_kind(cfg.engine.kind, device), took)
             transport.run(stop)
             # Out of routing first, engine second: stopping the engine while the router still
-            # routes here would fail requests a healthy replica could serve. A superseded process's name is another
-            # process's: a drain of it would take that one out of routing.
-            if not transport.superseded:
-                transport.withdraw()
+            # routes here would fail requests a healthy replica could serve.
+            transport.withdraw()
     finally:
         slot.stop()
         transport.drain()
         transport.close()
-    if transport.superseded:
-        log.warning("stopped: another process serves as %s (%s)", args.name, transport.stats)
-        return 0  # on purpose: a supervisor restarting it would take the name from that process again
     if transport.fatal.is_set():
         log.error("stopped: %s (%s)", transport.fatal_reason, transport.stats)
         return 1  # a supervisor (docker-compose's restart policy) starts it again

@@ -27,7 +27,7 @@ from shared.config import ClusterConfig, ModelConfig, dial_address, settings_dig
 from shared.metrics import ExecutorMetrics
 from shared.protocol import (ErrorCode, InferReply, InferRequest, ProtocolError, RequestId, Timings, decode,
                              encode, error_frames, header_id, message_bytes, unpack_header)
-from shared.service import connect, connected_again, connection_up, keep_alive
+from shared.service import connect, connection_up, keep_alive, monitor_events
 
 log = logging.getLogger("robion.executor")
 
@@ -131,7 +131,7 @@ class ExecutorIO:
         self.fatal = threading.Event()  # serving cannot go on (a reload and its fallback failed, a sticky fault)
         self.fatal_reason = ""
         self._connection = 0  # connections to the router made so far (the hello's connection number)
-        self.superseded = False  # the router said a later process has this name: stop, leaving routing to it
+        self._backend_up = False  # whether the connection to the router is up (its monitor's events)
         self._failed_in_row = 0  # requests the engine failed since it last answered one with actions
         self._failed_batches_in_row = 0  # deliveries of results holding those failures
         self._poller: zmq.Poller | None = None
@@ -162,7 +162,7 @@ class ExecutorIO:
         # instance) at once: otherwise it would learn our instance only at our next registration, and
         # could not tell a later restart of ours from our first hello (requests in flight to the old
         # process would then wait out router.request_timeout_s).
-        self.backend_events = self.backend.get_monitor_socket(zmq.EVENT_CONNECTED)
+        self.backend_events = self.backend.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
         connect(self.backend, dial_address(cfg.router.backend, cfg.router.backend_connect))
         # Hello at once: with ROUTER_HANDOVER the connect takes this name over at the router, so it must learn
         # now, not after the engine has started (seconds to minutes), that an earlier process of this name is
@@ -253,23 +253,16 @@ class ExecutorIO:
             self._take_requests(ready)
             self._flush_unsent()
 
-    def _from_router(self, frame: memoryview) -> None:
-        try:
-            msg = control.unpack(frame)
-        except ProtocolError:
-            return log.warning("ignored an unreadable message from the router")
-        if msg.get("kind") == "superseded" and msg.get("instance") == self.instance and not self.superseded:
-            # A later process took this name while this one was frozen or cut off: serving on would have both take
-            # the name from each other every few seconds, each failing the other's requests. It leaves without a
-            # drain or deregister, which would take the name's successor out of routing.
-            log.critical("another process serves as %s now (this one was frozen or cut off); exiting", self.name)
-            self.superseded = True
-
     def _take_requests(self, ready: dict) -> None:
         """Say hello again after a reconnect, and take up to 256 requests from the router (``ready``: a poll's)."""
-        if self.backend_events in ready and connected_again(self.backend_events):
-            self._connection += 1
-            self._hello()  # the same instance again to a router that knows it changes nothing
+        if self.backend_events in ready:
+            for event in monitor_events(self.backend_events):
+                if event == zmq.EVENT_DISCONNECTED:
+                    self._backend_up = False
+                elif event == zmq.EVENT_CONNECTED:
+                    self._backend_up = True
+                    self._connection += 1
+                    self._hello()  # the same instance again to a router that knows it changes nothing
         if self.backend in ready:
             for _ in range(256):
                 try:
@@ -285,7 +278,7 @@ class ExecutorIO:
             self._poller.register(s, zmq.POLLIN)
         self.register()
         self._last_beat = time.monotonic()
-        while not stop.is_set() and not self.fatal.is_set() and not self.superseded:
+        while not stop.is_set() and not self.fatal.is_set():
             self._serve_once()
 
     def _serve_once(self, timeout_ms: int = 50) -> None:
@@ -353,7 +346,10 @@ class ExecutorIO:
             # A message to the router every heartbeat too. A connection the router detached without closing it
             # (another peer took this name: ROUTER_HANDOVER) still answers ZMTP pings until a message is stuck in it;
             # only then does keep_alive's timeout find it. An idle executor sent nothing, and was never reached again.
-            self._hello()
+            # None while disconnected: queued, they would reach a restarted router ahead of the reconnect's hello,
+            # under the old connection's number, and make the reconnect look like one from a connection it knew.
+            if self._backend_up:
+                self._hello()
             self._update_gauges(depths)
 
     def _ctl_reply(self, kinds: tuple[str, ...], timeout_s: float) -> dict | None:
@@ -530,9 +526,8 @@ class ExecutorIO:
             self._unsent.popleft()
 
     def close(self) -> None:
-        # Leave the routing table now rather than after missed heartbeats (a superseded process's name is another's).
-        if not self.superseded:
-            self._ctl_send("deregister", executor=self.name)
+        # Leave the routing table now rather than after missed heartbeats.
+        self._ctl_send("deregister", executor=self.name)
         self.ctl.setsockopt(zmq.LINGER, 500)
         self.backend.disable_monitor()
         self.ctl.disable_monitor()
@@ -635,8 +630,6 @@ class ExecutorIO:
     def _on_request(self, frames: list[zmq.Frame]) -> None:
         if len(frames) < 2:
             return  # the router's probe of our connection (one empty frame): not a request
-        if not frames[0].bytes:  # the router's own message: no robot's identity is empty
-            return self._from_router(frames[1].buffer)
         arrival = self._last_request = time.monotonic()
         envelope = frames[0].bytes
         body = [f.buffer for f in frames[1:]]

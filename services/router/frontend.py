@@ -50,7 +50,9 @@ RECONNECT_GRACE_S = 0.5
 # reconnect's hello was read (one forwarded on the new connection just before counts too) that it has not answered
 # this long after is answered UNAVAILABLE (a frozen executor's 60 queued requests waited request_timeout_s, 30 s).
 RECONNECT_ANSWER_S = 3.0
-MAX_SUPERSEDED = 8  # earlier instances remembered per executor name
+# This many restarts of one executor name within FLAPPING_WINDOW_S are reported as two processes sharing the name.
+FLAPPING_RESTARTS = 3
+FLAPPING_WINDOW_S = 30.0
 
 # A request in flight: (robot, id type, id). The id keeps its wire type, so 7 and "7" from one
 # robot are two requests; the type is in the key so that stays true whatever the ids compare as.
@@ -186,8 +188,8 @@ class Router:
         # Executor name -> the process token its last hello carried: a different one is a restart.
         self._instances: dict[str, str] = {}
         self._connections: dict[str, int | None] = {}  # executor name -> the connection number of its last hello
-        self._superseded: dict[str, list[str]] = {}  # executor name -> instances a restart replaced, newest last
-        self._superseded_hello = RateLimitedWarning()
+        self._restarts: dict[str, list[float]] = {}  # executor name -> when it restarted lately (FLAPPING_WINDOW_S)
+        self._flapping = RateLimitedWarning()
         # The table kept may be a control plane's that has since restarted (it sent its empty v0, or we
         # reconnected): the new one numbers its tables from v1 again, so its next one is installed whatever its version.
         self._table_outlived_plane = False
@@ -523,14 +525,6 @@ class Router:
             return  # an executor from before the instance field: a restart cannot be told
         connection = msg.get("connection")
         connection = connection if isinstance(connection, int) and not isinstance(connection, bool) else None
-        if instance in self._superseded.get(name, ()):
-            # An earlier process of this name, alive again (it was frozen, or its host cut off) after a successor
-            # took over: with both redialling whenever the other takes the name, each would pass for the other's
-            # restart every few seconds, failing its requests. The earlier one is told to exit.
-            self._superseded_hello.warn("executor %s: a superseded process (instance %s) is back; told it to exit",
-                                        name, instance)
-            self._send_to_executor(name, control.pack("superseded", executor=name, instance=instance))
-            return
         known = self._instances.get(name)
         if known == instance:
             # The same process again (it says hello each heartbeat). On a new connection of its own (a reset, or a
@@ -545,15 +539,22 @@ class Router:
             # peers inventing names: forget them rather than grow without bound
             self._instances.clear()
             self._connections.clear()
-            self._superseded.clear()
+            self._restarts.clear()
         self._instances[name] = instance
         self._connections[name] = connection
         if known is None:
             return  # the first hello of the name this router has seen: nothing to compare with
-        superseded = self._superseded.setdefault(name, [])
-        superseded.append(known)
-        del superseded[:-MAX_SUPERSEDED]
         log.info("executor %s restarted (instance %s -> %s)", name, known, instance)
+        # Two live processes under one name take it from each other whenever one redials (the heartbeats find the
+        # connection the other took), so each passes for the other's restart every few seconds. Which of them should
+        # serve cannot be told here (a process that was frozen, a successor that has since died): say so instead.
+        now = time.monotonic()
+        recent = [t for t in self._restarts.get(name, []) if now - t < FLAPPING_WINDOW_S] + [now]
+        self._restarts[name] = recent
+        if len(recent) >= FLAPPING_RESTARTS:
+            self._flapping.warn("executor %s restarted %d times in %.0f s: two processes may be running under this "
+                                "name (each taking it from the other: stop one), or it is crash-looping", name,
+                                len(recent), FLAPPING_WINDOW_S)
         self._fail_executor(name, "restarted")
 
     def _mark_lost_unless_answered(self, executor: str) -> None:
@@ -566,13 +567,6 @@ class Router:
         if marked:
             log.info("executor %s reconnected with %d requests in flight: those it does not answer within %.0f s are "
                      "answered UNAVAILABLE", executor, marked, RECONNECT_ANSWER_S)
-
-    def _send_to_executor(self, executor: str, frame: bytes) -> None:
-        """A message of the router's own to an executor: an empty envelope, which no robot's identity is."""
-        try:
-            self.backend.send_multipart([executor.encode(), b"", frame], flags=zmq.NOBLOCK)
-        except zmq.ZMQError:
-            pass  # gone again, or not reading: its next hello asks again
 
     # ------------------------------------------------------------------ control plane
 
