@@ -34,16 +34,23 @@ def said(got: list[dict], expected: dict) -> bool:
     return any(expected.items() <= hello.items() for hello in got)
 
 
+def restart_router(h: Harness, away_s: float = 0.0) -> None:
+    """The stand-in router process goes away (for ``away_s``) and a new one binds the same address."""
+    h.router.close()
+    time.sleep(away_s)
+    router = h.ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    wait_until_bindable(h.cfg.router.backend)  # the closed socket lets go of it in the background
+    router.bind(h.cfg.router.backend)
+    h.router = router
+
+
 def test_the_executor_says_hello_again_to_a_restarted_router(tmp_path):
     h = Harness(tmp_path)
     try:
         hellos_until(h.router, time.monotonic() + 0.5)  # the start-up hellos (construction, registration)
-        h.router.close()  # the router process goes away ...
-        router = h.ctx.socket(zmq.ROUTER)  # ... and a new one binds the same address
-        router.setsockopt(zmq.LINGER, 0)
-        wait_until_bindable(h.cfg.router.backend)  # the closed socket lets go of it in the background
-        router.bind(h.cfg.router.backend)
-        h.router = router
+        restart_router(h)
+        router = h.router
         # on its second connection: the hellos of every heartbeat carry the first one's number
         expected = {"kind": "executor_hello", "executor": "ex0", "instance": h.io.instance, "connection": 2}
         got = hellos_until(router, time.monotonic() + 5.0, stop_at=expected)

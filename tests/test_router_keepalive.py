@@ -23,11 +23,20 @@ from shared.client import RobionError, RobotClient
 from shared.cluster import LocalCluster, control_status
 from shared.config import load_config
 from shared.protocol import ErrorCode, ErrorReply, decode
-from tests.helpers import cluster_config, free_ports, wait_for, wait_until_bindable
+from tests.helpers import cluster_config, free_ports, wait_for
 from tests.test_executor_io import Harness
-from tests.test_executor_reconnect import hellos_until, said
+from tests.test_executor_reconnect import hellos_until, restart_router, said
 from tests.test_router_restart import LONG_TIMEOUT_S, ResettingProxy, executor_behind_proxy, held_request
 from tests.test_router_robustness import RouterThread, one_executor_table
+
+
+def served_again(client: RobotClient, model: str, images: dict, state: np.ndarray) -> bool:
+    """Whether three requests in a row are served; False on UNAVAILABLE (the executor has not redialled yet)."""
+    try:
+        return all(client.infer(model, images, state).ok for _ in range(3))
+    except RobionError as exc:
+        assert exc.code == ErrorCode.UNAVAILABLE, exc
+        return False
 
 
 def test_a_frozen_connection_is_failed_after_the_heartbeat_timeout(tmp_path):
@@ -129,15 +138,8 @@ def test_a_stopped_executor_process_is_routed_around_with_the_control_plane_down
             # ex1 redials, and its late answers to the failed requests are dropped. With ex0 killed too, toy-a is
             # served by ex1 alone.
             cluster.procs["executor[ex0]"].kill()
-            served, deadline = 0, time.monotonic() + 20
-            while served < 3 and time.monotonic() < deadline:
-                try:
-                    served = served + 1 if client.infer("toy-a", images, state).ok else 0
-                except RobionError as exc:  # UNAVAILABLE until the router sees ex1's new connection
-                    assert exc.code == ErrorCode.UNAVAILABLE, exc
-                    served = 0
-                    time.sleep(0.2)
-            assert served == 3, "the resumed executor did not serve again"
+            assert wait_for(lambda: served_again(client, "toy-a", images, state), 20, 0.2), \
+                "the resumed executor did not serve again"
             assert frozen.poll() is None
 
 
@@ -164,15 +166,8 @@ def test_an_executor_gets_its_name_back_from_a_connection_that_took_it(tmp_path,
         time.sleep(0.5)
         impostor.close()
         time.sleep(2 * cfg.control.heartbeat_s * cfg.control.missed_heartbeats)  # the plane drops an executor it lost
-
-        def served_again() -> bool:
-            try:
-                return all(client.infer("toy-b", images, state).ok for _ in range(3))
-            except RobionError as exc:  # UNAVAILABLE until ex0 has redialled
-                assert exc.code == ErrorCode.UNAVAILABLE, exc
-                return False
-
-        assert wait_for(served_again, 20, 0.2), "toy-b's only executor was never reached again"
+        assert wait_for(lambda: served_again(client, "toy-b", images, state), 20, 0.2), \
+            "toy-b's only executor was never reached again"
         assert "ex0" in control_status(cfg.control.bind)["table"]["routes"]["toy-b"]
 
 
@@ -183,14 +178,8 @@ def test_no_hellos_queue_while_the_router_is_away(tmp_path):
     h = Harness(tmp_path)
     try:
         hellos_until(h.router, time.monotonic() + 0.5)
-        h.router.close()
-        time.sleep(8 * h.cfg.control.heartbeat_s)  # the router is away for several heartbeats
-        router = h.ctx.socket(zmq.ROUTER)
-        router.setsockopt(zmq.LINGER, 0)
-        wait_until_bindable(h.cfg.router.backend)
-        router.bind(h.cfg.router.backend)
-        h.router = router
-        got = hellos_until(router, time.monotonic() + 3.0, stop_at={"connection": 2})
+        restart_router(h, away_s=8 * h.cfg.control.heartbeat_s)  # away for several heartbeats
+        got = hellos_until(h.router, time.monotonic() + 3.0, stop_at={"connection": 2})
         assert got and got[0].get("connection") == 2, got  # the reconnect's hello first: none queued before it
     finally:
         h.close()

@@ -463,10 +463,9 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
         found = _max_flow_fast(M + K + 2, edges, s, t) or (_max_flow(M + K + 2, edges, s, t) if exact else None)
         return None if found is None else (*found, sum(c for _, _, c in edges[:M]))
 
-    lcm = scale
+    exact = network(scale, lambda m: m.robots * (scale // m.limit))
     slack = Fraction(0)  # how far below full a GPU that is full may read (the bracket's rounding)
-    exact_demand = lambda m: m.robots * (lcm // m.limit)  # noqa: E731
-    solved = relaxation(network(lcm, exact_demand))
+    solved = relaxation(exact)
     if solved is None:
         # The lcm of many distinct limits overflows int64, and the exact max flow in Python took 10-24 s on 4096 GPUs
         # against a 1 s limit, the control plane blocked meanwhile. A power-of-two scale brackets the exact answer:
@@ -485,7 +484,7 @@ def diagnose_capacity(problem: PlanProblem) -> str | None:
                 # GPUs in index order below) reads at most M units short.
                 solved, scale, slack = down, approx, Fraction(M, approx)
     if solved is None:
-        solved = relaxation(network(lcm, exact_demand), exact=True)
+        solved = relaxation(exact, exact=True)
     flow, reach, used, demand = solved
     if flow >= demand:
         return None

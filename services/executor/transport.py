@@ -157,7 +157,8 @@ class ExecutorIO:
         self.backend.setsockopt(zmq.IDENTITY, name.encode())
         self.backend.setsockopt(zmq.LINGER, 1000)
         self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * cfg.router.max_message_bytes + 65536)
-        keep_alive(self.backend, cfg.router.keepalive_s)  # a router whose host died is redialled once it is back (shared.service)
+        # A router whose host died is redialled once it is back (shared.service).
+        keep_alive(self.backend, cfg.router.keepalive_s)
         # Each (re)connect to the router is reported here, so a restarted router hears our hello (and
         # instance) at once: otherwise it would learn our instance only at our next registration, and
         # could not tell a later restart of ours from our first hello (requests in flight to the old

@@ -155,7 +155,7 @@ class Router:
         # The bound the executors keep on what the router sends them. Without it one peer on this port could hand
         # the router's loop a frame of any size: 1 GB took 0.9 GB of memory, and a stream of them 14 GB.
         self.backend.setsockopt(zmq.MAXMSGSIZE, 2 * limit + 65536)
-        keep_alive(self.backend, cfg.router.keepalive_s)  # a frozen executor, or a dead host, is disconnected (shared.service)
+        keep_alive(self.backend, cfg.router.keepalive_s)  # a frozen executor or a dead host is disconnected
         bind(self.backend, cfg.router.backend, "router.backend")
         # An executor's connection closing (its process crashed or was killed: the OS closes its sockets; or it missed
         # the heartbeats of keep_alive: a frozen process or a dead host) is reported here. Without it its requests in
