@@ -19,7 +19,7 @@ from shared.files import unwritable
 from shared.service import load_or_exit, log_level
 
 if TYPE_CHECKING:
-    from shared.cluster import LocalCluster
+    from shared.cluster import LocalCluster, RestartPolicy
 
 
 def checkout_path(relative: str) -> Path:
@@ -34,6 +34,17 @@ DEFAULT_DEMO = checkout_path("configs/demo.yaml")
 ANSWER_MARGIN_S = 10.0
 
 
+def non_negative_int(text: str) -> int:
+    """argparse type of a count: refused with a message and exit code 2, not a traceback."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
+
+
 def positive_seconds(text: str) -> float:
     """argparse type of a --timeout: a wait of zero, a negative one (which zmq takes as "forever")
     or a non-finite one is refused by argparse with a message and exit code 2, not a traceback."""
@@ -46,22 +57,36 @@ def positive_seconds(text: str) -> float:
     return value
 
 
-def _wait_for_signal_or_exit(cluster: "LocalCluster") -> bool:
-    """Until SIGINT or SIGTERM, or until the router or the control plane has exited (then False): an `up` that went
-    on waiting with its router dead reported nothing, and exited 0 at the operator's stop. An executor that exits is
-    reported and the others keep serving (routing drops it); the stop's exit code is then 1."""
+def _wait_for_signal_or_exit(cluster: "LocalCluster", restarts: "RestartPolicy") -> bool:
+    """Until SIGINT or SIGTERM (then True if no service failed meanwhile), or until the router or the control plane
+    has exited for good (then False): an `up` that went on waiting with its router dead reported nothing, and exited
+    0 at the operator's stop. A service that fails is started again as ``restarts`` says; an executor left down is
+    reported and the others keep serving (routing drops it)."""
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    reported: set[str] = set()
+    failed = False
+    down: set[str] = set()  # exited for good
+    due: dict[str, float] = {}  # name -> when it is started again
     while not stop.wait(0.5):
-        for name in sorted(n for n, up in cluster.alive().items() if not up and n not in reported):
-            reported.add(name)
-            print(f"robion up: {name} exited with code {cluster.procs[name].returncode}", file=sys.stderr, flush=True)
-        if reported & {"router", "control"}:
+        now = time.monotonic()
+        for name in sorted(n for n, up in cluster.alive().items() if not up and n not in down and n not in due):
+            code = cluster.procs[name].returncode
+            failed = failed or code != 0
+            delay, why = restarts.after_exit(name, code, now)
+            print(f"robion up: {name} exited with code {code}: {why}", file=sys.stderr, flush=True)
+            if delay is None:
+                down.add(name)
+            else:
+                due[name] = now + delay
+        if down & {"router", "control"}:
             print("robion up: stopping the cluster", file=sys.stderr, flush=True)
             return False
-    return not reported
+        for name in [n for n, at in due.items() if at <= now]:
+            del due[name]
+            cluster.respawn(name)
+            print(f"robion up: {name} started again", file=sys.stderr, flush=True)
+    return not failed
 
 
 def _ignore_stops() -> None:
@@ -76,7 +101,7 @@ def _say(line: str) -> None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from shared.cluster import LocalCluster
+    from shared.cluster import LocalCluster, RestartPolicy
 
     cfg = load_or_exit(args.config)
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
@@ -90,7 +115,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         print(f"robion is up in {time.monotonic() - t0:.1f} s: robots connect to {dial_address(cfg.router.bind)}; "
               f"models {sorted(status['table']['models'])} on executors {sorted(status['executors'])}. Ctrl-C stops it.",
               flush=True)
-        if not _wait_for_signal_or_exit(cluster):
+        if not _wait_for_signal_or_exit(cluster, RestartPolicy(max_restarts=args.max_restarts)):
             rc = 1
     except KeyboardInterrupt:
         pass
@@ -302,6 +327,9 @@ def main(argv: list[str] | None = None) -> int:
     up.add_argument("-c", "--config", required=True)
     up.add_argument("--timeout", type=positive_seconds, default=300.0,
                     help="seconds to wait for the cluster to be ready")
+    up.add_argument("--max-restarts", type=non_negative_int, default=5, metavar="N",
+                    help="start a service that fails (exit code other than 0 and 2, or killed) again after 1, 2, 4 "
+                         "... 30 s, up to N times within 300 s (default 5; 0: never)")
     up.set_defaults(fn=cmd_up)
 
     demo = sub.add_parser("demo", help="start a cluster, drive a simulated fleet against it, print the SLO report")

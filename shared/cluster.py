@@ -85,6 +85,46 @@ def addresses_taken(cfg: ClusterConfig) -> list[str]:
     return problems
 
 
+# Exit codes after which a service is not started again: 0 is a clean stop (SIGTERM), 2 a refusal of its
+# configuration or device, which a restart would meet again (docs/operations.md, "Exit codes").
+NO_RESTART_CODES = (0, 2)
+
+
+class RestartPolicy:
+    """When `robion up` starts a service that failed again: docker-compose's ``restart: on-failure``, with a back-off
+    and a limit. A crashed executor is otherwise gone for good under `up` (a failed reload that leaves it nothing to
+    serve exits 1 expressly for its supervisor), and the router and control plane are built to be restarted: robots
+    and executors reconnect, executors register again.
+
+    The n-th failure of a name within ``window_s`` waits ``backoff_s[n-1]`` (the last entry from then on) before its
+    restart; failure ``max_restarts + 1`` within the window is not restarted, so a service that cannot start does not
+    loop for ever. ``max_restarts`` 0 restarts nothing."""
+
+    def __init__(self, max_restarts: int = 5, window_s: float = 300.0,
+                 backoff_s: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0, 16.0, 30.0)):
+        if max_restarts < 0 or window_s <= 0 or not backoff_s:
+            raise ValueError("max_restarts >= 0, window_s > 0 and at least one back-off step")
+        self.max_restarts = max_restarts
+        self.window_s = window_s
+        self.backoff_s = backoff_s
+        self._failures: dict[str, list[float]] = {}
+
+    def after_exit(self, name: str, code: int, now: float) -> tuple[float | None, str]:
+        """Seconds to wait before starting ``name`` again (None: leave it down), and why, for the operator."""
+        if code in NO_RESTART_CODES:
+            return None, ("stopped cleanly" if code == 0 else "refused its configuration or device") + ", not restarted"
+        recent = [t for t in self._failures.get(name, []) if now - t < self.window_s] + [now]
+        self._failures[name] = recent
+        if len(recent) > self.max_restarts:
+            if self.max_restarts == 0:
+                return None, "not restarted (restarts are off)"
+            return None, (f"failure {len(recent)} within {self.window_s:g} s, more than the {self.max_restarts} "
+                          "restarts allowed: not restarted")
+        delay = self.backoff_s[min(len(recent), len(self.backoff_s)) - 1]
+        return delay, f"starting it again in {delay:g} s (restart {len(recent)} of {self.max_restarts} within " \
+                      f"{self.window_s:g} s)"
+
+
 class LocalCluster:
     """Control plane, router and one process per executor, all children of this process."""
 
@@ -93,8 +133,10 @@ class LocalCluster:
         self.config_path = str(config_path)
         self.log_level = log_level
         self.procs: dict[str, subprocess.Popen] = {}
+        self._commands: dict[str, tuple[str, ...]] = {}
 
     def _spawn(self, name: str, module: str, *extra: str) -> None:
+        self._commands[name] = (module, *extra)
         cmd = [sys.executable, "-m", module, "--config", self.config_path, "--log-level", self.log_level,
                "--parent-pid", str(os.getpid()), *extra]
         # A session of its own: a Ctrl-C at the terminal reaches the whole foreground process group, and the
@@ -133,6 +175,12 @@ class LocalCluster:
             time.sleep(0.1)
         self.stop()
         raise TimeoutError(f"cluster not ready within {timeout_s:.0f} s")
+
+    def respawn(self, name: str) -> None:
+        """Start ``name`` again with the command line it had (its config file read afresh); it must have exited."""
+        if self.procs[name].poll() is None:
+            raise RuntimeError(f"{name} is still running")
+        self._spawn(name, *self._commands[name])
 
     def alive(self) -> dict[str, bool]:
         return {name: p.poll() is None for name, p in self.procs.items()}

@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from shared.client import RobotClient
+from shared.cluster import control_status
 from tests.helpers import cluster_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -33,9 +34,9 @@ def children_of_config(path) -> list[int]:
     return pids
 
 
-def start_up(path) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", "-c", str(path)], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+def start_up(path, *extra: str, stderr=subprocess.DEVNULL) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", "-c", str(path), *extra], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=stderr, text=True)
     lines = [proc.stdout.readline() for _ in range(4)]
     assert lines[0].startswith("starting the cluster from"), lines
     # progress as each executor registers, in either order
@@ -148,13 +149,15 @@ def test_a_second_cluster_on_the_same_addresses_is_refused_and_the_first_keeps_s
     assert first.returncode == 0
 
 
-def test_up_stops_with_exit_1_when_its_router_dies(tmp_path):
+def service_pids(path, module: bytes) -> list[int]:
+    return [pid for pid in children_of_config(path) if module in open(f"/proc/{pid}/cmdline", "rb").read()]
+
+
+def test_up_stops_with_exit_1_when_its_router_dies_and_restarts_are_off(tmp_path):
     """It went on waiting for a signal with its router dead, and exited 0 when stopped."""
     path, _ = cluster_config(tmp_path)
-    proc = start_up(path)
-    router = [pid for pid in children_of_config(path)
-              if b"services.router.main" in open(f"/proc/{pid}/cmdline", "rb").read()]
-    os.kill(router[0], signal.SIGKILL)
+    proc = start_up(path, "--max-restarts", "0")
+    os.kill(service_pids(path, b"services.router.main")[0], signal.SIGKILL)
     try:
         out, _ = proc.communicate(timeout=60)
     finally:
@@ -162,6 +165,87 @@ def test_up_stops_with_exit_1_when_its_router_dies(tmp_path):
             proc.kill()
     assert proc.returncode == 1, out
     assert "'router': -9" in out
+    assert wait_gone(path) == []
+
+
+def served(address: str, robot: str, model: str = "toy-a", timeout_s: float = 30.0) -> bool:
+    with RobotClient(address, robot_id=robot, timeout_s=timeout_s) as client:
+        info = client.metadata()[model]
+        images = {c: np.zeros(info.image_shape, np.uint8) for c in info.cameras}
+        return client.infer(model, images, np.zeros(info.state_dim, np.float32)).actions is not None
+
+
+def wait_for_new_pid(path, module: bytes, old: int, timeout_s: float = 20.0) -> int:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        pids = [p for p in service_pids(path, module) if p != old]
+        if pids:
+            return pids[0]
+        time.sleep(0.1)
+    raise AssertionError(f"{module.decode()} was not started again within {timeout_s} s")
+
+
+def serving_instance(data: dict, executor: str) -> str | None:
+    """The process token of ``executor`` as the control plane has it registered and routed, with the router on that
+    table, else None."""
+    status = control_status(data["control"]["bind"], timeout_s=1.0) or {}
+    entry = status.get("executors", {}).get(executor)
+    table = status.get("table", {})
+    routed = (any(executor in hosts for hosts in table.get("routes", {}).values())
+              and status.get("router", {}).get("version") == table.get("version"))
+    return entry.get("instance") if entry and routed else None
+
+
+def test_up_starts_a_killed_router_and_executor_again_and_robots_are_served(tmp_path):
+    """Nothing restarted a failed service: an executor that crashed (or exited 1 after a failed reload, which it does
+    for its supervisor) stayed down for the rest of the run, and a dead router stopped the whole cluster."""
+    path, data = cluster_config(tmp_path)
+    proc = start_up(path, stderr=subprocess.PIPE)
+    try:
+        router = service_pids(path, b"services.router.main")[0]
+        executor = service_pids(path, b"--name\0ex0")[0]
+        before = serving_instance(data, "ex0")
+        os.kill(router, signal.SIGKILL)
+        os.kill(executor, signal.SIGKILL)
+        wait_for_new_pid(path, b"services.router.main", router)
+        wait_for_new_pid(path, b"--name\0ex0", executor)
+        end = time.monotonic() + 60
+        while (instance := serving_instance(data, "ex0")) in (None, before) and time.monotonic() < end:
+            time.sleep(0.2)
+        assert instance not in (None, before), "the restarted ex0 did not register"
+        # toy-b is served by ex0 alone: its reply shows the restarted executor back in routing
+        assert served(data["router"]["bind"], "after-restart", model="toy-b")
+        assert len(children_of_config(path)) == 4
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    assert "robion up: router exited with code -9: starting it again in 1 s (restart 1 of 5 within 300 s)" in err, err
+    assert "robion up: executor[ex0] exited with code -9: starting it again in 1 s" in err, err
+    assert "robion up: router started again" in err and "robion up: executor[ex0] started again" in err, err
+    assert proc.returncode == 1, out  # a service failed during the run, though it was brought back
+    assert "'router': 0" in out and "'executor[ex0]': 0" in out, out  # the restarted ones stop cleanly
+    assert wait_gone(path) == []
+
+
+def test_up_leaves_down_an_executor_that_fails_more_often_than_allowed_and_keeps_serving(tmp_path):
+    path, data = cluster_config(tmp_path)
+    proc = start_up(path, "--max-restarts", "1", stderr=subprocess.PIPE)
+    try:
+        first = service_pids(path, b"--name\0ex1")[0]
+        os.kill(first, signal.SIGKILL)
+        second = wait_for_new_pid(path, b"--name\0ex1", first)
+        time.sleep(1.0)  # let it get past its imports
+        os.kill(second, signal.SIGKILL)
+        time.sleep(3.0)  # a restart would come after 1 s
+        assert service_pids(path, b"--name\0ex1") == []
+        assert proc.poll() is None  # the cluster goes on, ex0 serves toy-a
+        assert served(data["router"]["bind"], "still-served")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    assert "executor[ex1] exited with code -9: failure 2 within 300 s, more than the 1 restarts allowed: " \
+           "not restarted" in err, err
+    assert proc.returncode == 1
     assert wait_gone(path) == []
 
 
@@ -199,3 +283,17 @@ def test_demo_refuses_fleet_settings_its_fleet_would_refuse_before_starting_the_
     assert res.returncode == 2 and "robion demo: fleet.duration_s: expected at least one period" in res.stderr, \
         res.stderr
     assert "starting the cluster" not in res.stdout
+
+
+def test_restart_policy_backs_off_limits_failures_in_its_window_and_skips_clean_and_refused_exits():
+    from shared.cluster import RestartPolicy
+
+    policy = RestartPolicy(max_restarts=3, window_s=100.0, backoff_s=(1.0, 5.0))
+    assert policy.after_exit("x", 0, 0.0)[0] is None  # a clean stop
+    assert policy.after_exit("x", 2, 0.0)[0] is None  # its config or device refused: it would fail again
+    assert [policy.after_exit("x", c, t)[0] for c, t in ((1, 0.0), (-9, 10.0), (1, 20.0))] == [1.0, 5.0, 5.0]
+    delay, why = policy.after_exit("x", 1, 30.0)
+    assert delay is None and "failure 4 within 100 s" in why
+    assert policy.after_exit("y", 1, 30.0)[0] == 1.0  # per service
+    assert policy.after_exit("x", 1, 115.0)[0] == 5.0  # the failures at 0 and 10 s have left the window
+    assert RestartPolicy(max_restarts=0).after_exit("x", 1, 0.0)[0] is None
