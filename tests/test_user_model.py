@@ -91,3 +91,85 @@ def test_robion_models_lists_the_modules_named_in_robion_imports(tmp_path):
                          text=True, cwd=tmp_path, env=env, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     assert '"my_vla"' in res.stdout and '"horizon": 16' in res.stdout, res.stdout
+
+
+# One line of the docs' example changed: each variant breaks the interface in a way that used to be served.
+BROKEN = {
+    "wrong_action_dim": ("        return x.to(noise.dtype)", "        return x.to(noise.dtype)[..., :5]",
+                         r"action_stage: expected actions of shape \[1, 16, 7\]"),
+    "one_row_short": ("        return x.to(noise.dtype)", "        return x.to(noise.dtype)[:1]",
+                      r"action_stage: expected actions of shape \[2, 16, 7\] \[batch, horizon, action_dim\] at batch "
+                      r"2, got \[1, 16, 7\]"),
+    "no_batch_dim": ("        return x.to(noise.dtype)", "        return x.to(noise.dtype)[0]",
+                     r"expected actions of shape \[1, 16, 7\] .* got \[16, 7\]"),
+    "integer_actions": ("        return x.to(noise.dtype)", "        return x.to(torch.int32)",
+                        r"expected floating-point actions, got torch.int32"),
+    "handoff_not_a_dict": ('        return {"ctx": self.encoder(', '        return {self.encoder(',
+                           r"vlm_stage: expected a dict of named tensors, got set"),
+    "four_channels": ("image_shape=(96, 96, 3)", "image_shape=(96, 96, 4)",
+                      r"io.image_shape: expected \(H, W, 3\)"),
+    "no_cameras": ('cameras=("base",)', "cameras=()", r"io.cameras: expected a tuple of one or more"),
+}
+
+
+@pytest.mark.parametrize("variant", sorted(BROKEN))
+def test_a_model_that_breaks_the_interface_is_refused_before_it_is_served(variant):
+    """Engines copy stage outputs into static buffers, where a wrong shape broadcast: robots were answered with
+    actions of the wrong size, or (one row short) every robot of a batch with the first robot's actions."""
+    from shared.models.base import InterfaceError, check_interface
+
+    old, new, message = BROKEN[variant]
+    source = docs_example()
+    assert old in source
+    model = example_model(source.replace(old, new))
+    with pytest.raises(InterfaceError, match=message):
+        check_interface(model)
+
+
+def example_model(source: str):
+    """The docs' example class built from ``source``, tiny, unregistered."""
+    namespace: dict = {}
+    exec(compile(source.replace('@register("my_vla")', "@(lambda c: c)"), "docs_example", "exec"), namespace)
+    return namespace["MyVLA"](namespace["MyConfig"](width=32))
+
+
+def test_the_docs_example_and_every_zoo_model_follow_the_interface():
+    from shared.models import build_model
+    from shared.models.base import check_interface
+
+    check_interface(example_model(docs_example()), batches=(1, 2, 3))
+    for arch in ("pi0", "smolvla", "groot_n15", "xr0", "toy"):
+        check_interface(build_model(arch, "tiny", seed=0, device="cpu"))
+
+
+def start_executor(path: Path, tmp_path: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
+    return subprocess.run([sys.executable, "-m", "services.executor.main", "-c", str(path), "--name", "ex0"],
+                          capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
+
+
+def test_an_executor_refuses_a_model_one_row_short_with_one_line_and_exit_2(tmp_path):
+    old, new, _ = BROKEN["one_row_short"]
+    path = user_config(tmp_path, "my_vla_short")
+    (tmp_path / "my_vla_short.py").write_text(docs_example().replace(old, new))
+    res = start_executor(path, tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert "cannot load models: MyVLA.action_stage: expected actions of shape [2, 16, 7]" in res.stderr
+
+
+def test_an_engine_that_cannot_start_exits_2_with_one_line(tmp_path):
+    """It raised out of main with a traceback and exit 1, which asks a supervisor to start it again: a model that
+    fails the same way each time looped. This one refuses batches above 2, which only the engine's warm-up at
+    max_batch 4 reaches."""
+    path = user_config(tmp_path, "my_vla_small_batches")
+    source = docs_example().replace("    def vlm_stage(self, images, state, tokens):\n",
+                                    "    def vlm_stage(self, images, state, tokens):\n"
+                                    "        assert images.shape[0] <= 2, 'batches of 3 or more are not supported'\n")
+    (tmp_path / "my_vla_small_batches.py").write_text(source)
+    data = yaml.safe_load(path.read_text())
+    data["engine"]["max_batch"] = 4
+    path.write_text(yaml.safe_dump(data))
+    res = start_executor(path, tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert ("cannot start the monolithic engine for ['mine']: AssertionError: batches of 3 or more are not "
+            "supported") in res.stderr, res.stderr[-2000:]

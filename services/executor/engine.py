@@ -193,13 +193,15 @@ class MonolithicEngine(Engine):
                 actions = st.action(handoff, noise).float().cpu().numpy()
                 t_act = time.monotonic()
                 vlm_ms, act_ms = (t_vlm - admitted) * 1e3, (t_act - t_vlm) * 1e3
+            # In the try: rows missing from a model's output fail their batch here, answered, not the engine loop.
+            results = [Result(r, actions=actions[i], admitted=admitted, vlm_s=t_vlm - admitted,
+                              action_s=t_act - t_vlm, done=t_act, lockstep=self._index) for i, r in enumerate(batch)]
         except Exception as exc:
             log.exception("batch of %d for %s failed", len(batch), model)
             self._emit([Result(r, error=(ErrorCode.INTERNAL, f"inference failed: {type(exc).__name__}"))
                         for r in batch])
             return True
-        self._emit([Result(r, actions=actions[i], admitted=admitted, vlm_s=t_vlm - admitted,
-                                action_s=t_act - t_vlm, done=t_act, lockstep=self._index) for i, r in enumerate(batch)])
+        self._emit(results)
         self._record(model, len(batch), admitted, vlm_ms, act_ms)
         return True
 

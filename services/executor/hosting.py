@@ -23,7 +23,7 @@ from services.executor.scheduler import Request, Result
 from services.executor.tokens import tokenizer_for
 from shared.config import EngineConfig, ModelConfig
 from shared.models import build_model
-from shared.models.base import ModelIO, VLAModel
+from shared.models.base import ModelIO, VLAModel, check_interface
 from shared.protocol import ErrorCode, ModelInfo, ProtocolError
 
 log = logging.getLogger("robion.executor")
@@ -81,6 +81,7 @@ class ModelStore:
                     from shared.models.weights import load_weights
 
                     load_weights(model, mc.weights)
+                check_interface(model)  # before an engine copies its outputs into buffers they may not fit
                 self._loaded[key] = model
                 log.info("loaded %s (%s/%s, seed %d) on %s", mc.name, mc.arch, mc.size, mc.seed, self.device)
             model = self._loaded[key]

@@ -128,7 +128,17 @@ def main(argv: list[str] | None = None) -> int:
           else ex_cfg.metrics_port_or_default(index or 0))
     transport = ExecutorIO(args.name, cfg, ex_cfg.device, store, slot, hosted, metrics, limits=limits)
     # The engine starts on its own thread while this one answers what the router sends meanwhile.
-    took = slot.start_while(hosted, lambda started: transport.answer_while_starting(started, stop))
+    try:
+        took = slot.start_while(hosted, lambda started: transport.answer_while_starting(started, stop))
+    except Exception as exc:
+        # Exit 2, not a traceback and 1: 1 asks a supervisor to start it again, and a model that cannot be captured
+        # or profiled would fail the same way each time. The traceback is for the model's author.
+        log.error("cannot start the %s engine for %s: %s: %s (--log-level debug shows where)",
+                  resolve_kind(cfg.engine.kind, device), sorted(hosted.models), type(exc).__name__, exc)
+        log.debug("engine start-up failed", exc_info=True)
+        slot.stop()
+        transport.close()
+        return 2
     served = sorted(hosted.models)
     # The slot and the transport hold what is served from now on; this frame lives until the process ends, and its
     # reference kept the first models' weights (device memory) alive after a reload dropped them.

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from services.executor.scheduler import Request
-from shared.models.base import Handoff, VLAModel
+from shared.models.base import Handoff, InterfaceError, VLAModel
 
 
 class EagerStages:
@@ -51,6 +51,15 @@ class EagerStages:
 
 
 # ----------------------------------------------------------------------------- static buffers
+
+
+def _copy_exact(dst: torch.Tensor, src: torch.Tensor, what: str) -> None:
+    """``dst.copy_(src)`` without broadcasting: a stage output one row short filled a whole batch with one robot's
+    actions. Python runs it only while capturing or running eagerly, never at a graph's replay."""
+    if src.shape != dst.shape:
+        raise InterfaceError(f"{what}: the stage returned shape {list(src.shape)}, its buffer is {list(dst.shape)}")
+    dst.copy_(src)
+
 
 NOISE = "__noise__"  # the batch's initial noise rides along with the handoff
 TensorSpec = tuple[tuple[int, ...], torch.dtype]
@@ -230,14 +239,14 @@ class BufferedStages:
         out = self.vlm_out[b].views
         handoff = self.model.vlm_stage(v["images"], v["state"], v["tokens"])
         for k, t in handoff.items():
-            out[k].copy_(t)
+            _copy_exact(out[k], t, f"handoff[{k!r}]")
         out[NOISE].copy_(v[NOISE])
 
     @torch.no_grad()
     def _action_body(self, b: int) -> None:
         v = self.act_in[b].views
         actions = self.model.action_stage({k: t for k, t in v.items() if k != NOISE}, v[NOISE])
-        self.dev_out[b].copy_(actions)
+        _copy_exact(self.dev_out[b], actions, "actions")
 
     def eager_reference(self, images: torch.Tensor, state: torch.Tensor, tokens: torch.Tensor,
                         noise: torch.Tensor) -> torch.Tensor:

@@ -103,3 +103,64 @@ class VLAModel(nn.Module):
               generator: torch.Generator | None = None) -> torch.Tensor:
         device = torch.device(device) if device is not None else next(self.parameters()).device
         return torch.randn(batch, self.io.horizon, self.io.action_dim, generator=generator).to(device)
+
+
+class InterfaceError(ValueError):
+    """A model that does not follow the two-stage interface: its ``io``, or what its stages return."""
+
+
+def _check_io(io: ModelIO) -> list[str]:
+    problems = []
+    if not isinstance(io, ModelIO):
+        return [f"io is a {type(io).__name__}, not a ModelIO"]
+    cams = io.cameras
+    if (not isinstance(cams, tuple) or not cams or not all(isinstance(c, str) and c for c in cams)
+            or len(set(cams)) != len(cams)):
+        problems.append(f"io.cameras: expected a tuple of one or more distinct camera names, got {cams!r}")
+    shape = io.image_shape
+    if (not isinstance(shape, tuple) or len(shape) != 3 or shape[2] != 3
+            or not all(isinstance(d, int) and d >= 1 for d in shape)):
+        problems.append(f"io.image_shape: expected (H, W, 3) of positive ints (robots send RGB), got {shape!r}")
+    for field in ("state_dim", "prompt_len", "horizon", "action_dim", "steps"):
+        value = getattr(io, field)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            problems.append(f"io.{field}: expected a positive int, got {value!r}")
+    return problems
+
+
+def check_interface(model: VLAModel, batches: tuple[int, ...] = (1, 2)) -> None:
+    """Raise InterfaceError unless ``model`` follows the two-stage interface at each batch size: a valid ``io``, a
+    handoff of tensors with the batch as dim 0 and the shapes and dtypes ``handoff_spec`` promised (engines allocate
+    their static buffers from it), and actions of exactly ``[B, horizon, action_dim]`` in a floating dtype.
+
+    Run once per model before an engine serves it. Engines copy outputs into static buffers, where a wrong shape
+    broadcasts: actions of the wrong size, or one robot's actions in every row of its batch, went out as replies."""
+    name = type(model).__name__
+    problems = _check_io(getattr(model, "io", None))
+    if problems:
+        raise InterfaceError(f"{name}: " + "; ".join(problems))
+    io = model.io
+    device = next(model.parameters()).device
+    with torch.inference_mode():
+        for b in batches:
+            handoff = model.vlm_stage(*model.example_inputs(b, device))
+            if not isinstance(handoff, dict) or not handoff or not all(
+                    isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in handoff.items()):
+                raise InterfaceError(f"{name}.vlm_stage: expected a dict of named tensors, got "
+                                     f"{type(handoff).__name__}")
+            got = {k: (tuple(v.shape), v.dtype) for k, v in handoff.items()}
+            for k, (shape, _) in got.items():
+                if not shape or shape[0] != b:
+                    raise InterfaceError(f"{name}.vlm_stage: handoff[{k!r}] has shape {list(shape)} at batch {b}; "
+                                         "dim 0 must be the batch")
+            spec = {k: (tuple(s), d) for k, (s, d) in model.handoff_spec(b).items()}
+            if got != spec:
+                raise InterfaceError(f"{name}: at batch {b} vlm_stage returned {got}, but handoff_spec says {spec}")
+            actions = model.action_stage(handoff, model.noise(b, device))
+            want = (b, io.horizon, io.action_dim)
+            if not isinstance(actions, torch.Tensor) or tuple(actions.shape) != want:
+                got_shape = list(actions.shape) if isinstance(actions, torch.Tensor) else type(actions).__name__
+                raise InterfaceError(f"{name}.action_stage: expected actions of shape {list(want)} "
+                                     f"[batch, horizon, action_dim] at batch {b}, got {got_shape}")
+            if not actions.is_floating_point():
+                raise InterfaceError(f"{name}.action_stage: expected floating-point actions, got {actions.dtype}")
