@@ -293,6 +293,10 @@ def _ctl(args: argparse.Namespace) -> int:
     for name, models in (reply.get("unhosted") or {}).items():
         print(f"warning: while {name} reloads, no other executor serves {', '.join(models)}: "
               "their requests are answered UNAVAILABLE until it is back", file=sys.stderr)
+    for name, models in (reply.get("awaiting") or {}).items():
+        print(f"warning: {name} drops {', '.join(models)} only once another executor serves them, and their new hosts "
+              f"are not registered or are drained: start or resume them within {reply.get('host_wait_s', 30):g} s, "
+              f"or {name}'s step fails and it keeps them", file=sys.stderr)
     if not args.wait:
         return 0
     end = time.monotonic() + args.timeout

@@ -14,10 +14,11 @@ router   -> control plane: table_get {version, role, executors?}
                            executors that outlived its restart register again; after each (re)connect to
                            the control plane a router reports version -1 and names its table's executors)
 anyone   -> control plane: status                    -> status {executors, table, router, expected, limits,
-                                                                settling, ready, rollout}
+                                                                control, settling, ready, rollout, apply}
 control plane -> executor: load {models: [model config], load_id}  (a placement change's reload; not answered:
                            the executor registers again once it is over, its `load` naming load_id)
-operator -> control plane: apply {config}            -> applied {steps, version, unhosted}
+operator -> control plane: apply {config}            -> applied {steps, version, unhosted, awaiting, host_wait_s,
+                                                                 rollout}
                            drain / resume {executor} -> ok {version}
 executor -> router (backend, empty robot frame): executor_hello {executor, instance, connection?}  (not
                            answered; at each connect and each heartbeat while connected. The instance is the

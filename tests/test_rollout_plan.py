@@ -391,3 +391,57 @@ def test_a_model_the_apply_keeps_still_holds_its_last_host_back():
     ro = Rollout([Step("ex0", [c.model("a")])])
     ro.tick(st, lambda ex, models, load_id: None, now=1.0)
     assert ro.failed == ["ex0"] and not st.executors["ex0"].draining
+
+
+def test_a_model_moved_to_a_host_that_is_not_running_keeps_its_old_host_until_the_new_one_serves():
+    """b moves from ex1 to ex9, which is not started. ex1's step dropped b all the same (named only as unhosted
+    "while ex1 reloads"), so b had no host until an operator started ex9, and the apply reported success."""
+    from services.controlplane.rollout import Rollout, plan_steps
+
+    c, st = _serving({"ex0": ["a"], "ex1": ["a", "b"]})
+    new = _applied(c, {"ex0": ["a"], "ex1": ["a"], "ex9": ["b"]})
+    steps = plan_steps(c, new, st)
+    assert [(s.executor, s.unhosted, s.awaits) for s in steps] == [("ex1", [], ["b"])]
+    st.replace_config(new)
+    ro = Rollout(steps, host_wait_s=30.0)
+    loads = []
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=1.0)
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=30.0)
+    assert not ro.current.started and not st.executors["ex1"].draining and loads == []  # waiting, b still served
+    ro.tick(st, lambda ex, models, load_id: loads.append(ex), now=31.5)
+    assert ro.finished and ro.failed == ["ex1"] and not st.executors["ex1"].draining and loads == []
+    assert "ex1" in st.table.routes["b"]
+
+    # ex9 starts within the wait and serves b: ex1's step goes ahead.
+    c, st = _serving({"ex0": ["a"], "ex1": ["a", "b"]})
+    steps = plan_steps(c, new, st)
+    st.replace_config(new)
+    ro = Rollout(steps, host_wait_s=30.0)
+    ro.tick(st, lambda ex, models, load_id: None, now=1.0)
+    st.register("ex9", "cpu", {"b": _info()}, now=10.0, instance="ex9-1")
+    ro.tick(st, lambda ex, models, load_id: None, now=10.0)
+    assert ro.failed == [] and ro.current.started and st.executors["ex1"].draining
+    assert st.table.routes["b"] == ["ex9"]
+
+
+def test_a_model_moved_to_a_drained_host_waits_for_its_resume():
+    from services.controlplane.rollout import Rollout, plan_steps
+
+    c, st = _serving({"ex0": ["a"], "ex1": ["a", "b"]})
+    st.set_drained("ex0", True)
+    new = _applied(c, {"ex0": ["a", "b"], "ex1": ["a"]})
+    steps = plan_steps(c, new, st)
+    # a too has no other routed host while ex1 reloads (ex0 is drained), but ex1 keeps it
+    assert [(s.executor, s.unhosted, s.awaits) for s in steps] == [("ex0", [], []), ("ex1", ["a"], ["b"])]
+    # Not moved there, the swap of two single-hosted models is still only unhosted while it reloads.
+    c2, st2 = _serving({"ex0": ["a"], "ex1": ["b"]})
+    assert [(s.unhosted, s.awaits) for s in plan_steps(c2, _applied(c2, {"ex0": ["b"], "ex1": ["a"]}), st2)] == \
+        [(["a"], []), ([], [])]
+    st.replace_config(new)
+    ro = Rollout(steps[1:], host_wait_s=30.0)  # ex0's reload done: it serves b, still drained
+    st.register("ex0", "cpu", {"a": _info(), "b": _info()}, now=1.0, instance="ex0-1")
+    ro.tick(st, lambda ex, models, load_id: None, now=1.0)
+    assert not ro.current.started
+    st.set_drained("ex0", False)
+    ro.tick(st, lambda ex, models, load_id: None, now=5.0)
+    assert ro.current.started and ro.failed == []

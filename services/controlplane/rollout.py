@@ -41,6 +41,12 @@ class Step:
     # (a swap between two executors, a new setting of a model with a single host). plan_steps orders the
     # steps so that this is empty wherever an order allows it.
     unhosted: list[str] = field(default_factory=list)
+    # Models the step drops that no executor registered and routed now is to serve once the rollout is done: their
+    # new hosts are not running yet, or are drained. The step waits for another executor to serve them (one that
+    # registers, or is resumed) and fails, keeping them, if none does: dropped, they had no host until an operator
+    # started one, and the apply reported success.
+    awaits: list[str] = field(default_factory=list)
+    waiting_since: float = 0.0
 
 
 # Settings `apply` changes live: the models (placement, populations, rates, limits, weights),
@@ -134,6 +140,10 @@ def plan_steps(old: ClusterConfig, new: ClusterConfig, state: ClusterState) -> l
         if step.executor in serving:
             serving[step.executor] = {m.name for m in step.models}
         ordered.append(step)
+    hosted_at_end = set().union(*serving.values())
+    for step in ordered:
+        step.awaits = [m for m in step.unhosted if m not in hosted_at_end]
+        step.unhosted = [m for m in step.unhosted if m in hosted_at_end]
     return ordered
 
 
@@ -156,9 +166,11 @@ def _drain(state: ClusterState, step: Step) -> None:
 
 
 class Rollout:
-    def __init__(self, steps: list[Step], timeout_s: float = 600.0, gone_s: float = 30.0):
+    def __init__(self, steps: list[Step], timeout_s: float = 600.0, gone_s: float = 30.0, host_wait_s: float = 30.0):
         self.pending = list(steps)
         self.timeout_s = timeout_s
+        # How long a step whose dropped models have no other host yet (Step.awaits) waits for one.
+        self.host_wait_s = host_wait_s
         # An executor that is off the registry this long during its change (it died or lost the
         # control plane while reloading) fails its step, instead of the rollout waiting out timeout_s.
         self.gone_s = gone_s
@@ -198,6 +210,19 @@ class Rollout:
             only = _only_host(serving, step.executor, serving.get(step.executor, set()))
             defined = {m.name for m in state.cfg.models}
             lost = sorted((only & defined) - {m.name for m in step.models} - set(step.unhosted))
+            if lost and set(lost) <= set(step.awaits):
+                if not step.waiting_since:
+                    step.waiting_since = now
+                    log.warning("placement change: %s drops %s once another executor serves them; waiting up to "
+                                "%.0f s for one (their new hosts are not registered or are drained)", step.executor,
+                                lost, self.host_wait_s)
+                if now - step.waiting_since <= self.host_wait_s:
+                    return
+                log.error("executor %s is the only host of %s, which its placement change drops, and no other "
+                          "executor serves them after %.0f s (start or resume their new hosts, then apply again); "
+                          "keeping %s as it is", step.executor, lost, self.host_wait_s, step.executor)
+                self._skip(step)
+                return
             if lost:
                 # The plan counted on another executor serving these by now; its step failed (or it left). Dropping
                 # them here would leave them with no host at all, not just for this reload.

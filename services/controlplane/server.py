@@ -248,8 +248,14 @@ class ControlPlane:
             for name, models in unhosted.items():
                 log.warning("apply: while %s reloads no other executor serves %s: their requests are answered "
                             "UNAVAILABLE until it is back", name, models)
+            awaiting = {s.executor: s.awaits for s in steps if s.awaits}
+            for name, models in awaiting.items():
+                log.warning("apply: %s drops %s only once another executor serves them, and none registered and "
+                            "routed is to: start or resume their new hosts within %.0f s, or its step fails",
+                            name, models, self.rollout.host_wait_s)
             return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version,
-                               unhosted=unhosted, rollout=self.rollout.id)
+                               unhosted=unhosted, awaiting=awaiting, host_wait_s=self.rollout.host_wait_s,
+                               rollout=self.rollout.id)
         name = _name(msg, "executor")
         if kind == "drain" and peer == name.encode():
             # The executor drains itself as it shuts down (ExecutorIO.withdraw; its control socket's identity
