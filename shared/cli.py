@@ -101,9 +101,12 @@ def _say(line: str) -> None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from shared.cluster import LocalCluster, RestartPolicy
+    from shared.cluster import LocalCluster, RestartPolicy, metrics_ports_taken
 
     cfg = load_or_exit(args.config)
+    for line in metrics_ports_taken(cfg):
+        print(f"robion up: warning: {line}: that service will serve no metrics, and a scrape of the port reads "
+              "whatever holds it; give it another metrics_port", file=sys.stderr, flush=True)
     cluster = LocalCluster(cfg, args.config, log_level=args.log_level)
     # Ctrl-C during start-up must still stop what was started.
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))

@@ -6,6 +6,7 @@ import logging
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -54,6 +55,12 @@ def metrics_port_clash(cfg: ClusterConfig) -> str | None:
     executor's ``metrics_port`` equal to another's default 9110 + index, the router's and the control plane's).
     The second to bind only logs a failure, and Prometheus then scrapes the first under the second's target."""
     owners: dict[int, str] = {}
+    # The ZeroMQ addresses' TCP ports too: a metrics port equal to router.backend's was taken by the router's own
+    # metrics server first, and its bind then failed as "address in use", which blamed the backend address.
+    for key, address in bound_addresses(cfg):
+        port = address.rsplit(":", 1)[1] if address.startswith("tcp://") else ""
+        if port.isdigit():
+            owners[int(port)] = key
     ports = [("the router", cfg.router.metrics_port), ("the control plane", cfg.control.metrics_port)]
     ports += [(f"executor {ex.name}", ex.metrics_port_or_default(i)) for i, ex in enumerate(cfg.executors)]
     for who, port in ports:
@@ -62,6 +69,27 @@ def metrics_port_clash(cfg: ClusterConfig) -> str | None:
                     f"metrics_port (executors default to 9110 + their index; 0 disables)")
         owners[port] = who
     return None
+
+
+def metrics_ports_taken(cfg: ClusterConfig) -> list[str]:
+    """Metrics ports of ``cfg`` that another process on this host holds, one line each. A service that cannot bind
+    its port only logs it, so a second cluster on the first one's default ports started without metrics, and
+    Prometheus scraped the first cluster's numbers under the second's targets. `robion up` warns of them rather than
+    refusing: 9100, the router's default, is also node_exporter's, and metrics are not what robots need."""
+    ports = [("the router", cfg.router.metrics_port), ("the control plane", cfg.control.metrics_port)]
+    ports += [(f"executor {ex.name}", ex.metrics_port_or_default(i)) for i, ex in enumerate(cfg.executors)]
+    problems = []
+    for who, port in ports:
+        if not port:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+            # As the metrics server binds it (0.0.0.0, address reuse on): a port in TIME_WAIT is free to it.
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind(("0.0.0.0", port))
+            except OSError as exc:
+                problems.append(f"metrics port {port} ({who}'s) is taken on this host ({exc.strerror})")
+    return problems
 
 
 def addresses_taken(cfg: ClusterConfig) -> list[str]:

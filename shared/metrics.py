@@ -20,7 +20,7 @@ log = logging.getLogger("robion.metrics")
 LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.035, 0.05, 0.053, 0.075, 0.1, 0.117, 0.125, 0.156, 0.2, 0.3,
                    0.5, 1.0, 2.5)
 STAGE_BUCKETS = (0.0005, 0.001, 0.002, 0.004, 0.006, 0.008, 0.01, 0.015, 0.02, 0.03, 0.05, 0.1, 0.25)
-BATCH_BUCKETS = (1, 2, 4, 8, 16, 32)
+BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256)  # up to the config's largest engine.max_batch (MAX_BATCH)
 
 
 def serve(registry: CollectorRegistry, port: int, addr: str = "0.0.0.0") -> bool:

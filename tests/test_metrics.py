@@ -78,6 +78,11 @@ def test_metrics_endpoints_and_movement(tmp_path, engine):
                 client.infer("toy-a", images, np.zeros(2, np.float32))
             except RobionError:
                 pass
+            hellos_and_pings = value(scrape(rm), "robion_router_requests_total", model="", status="ok")
+            client.ping()
+            client.metadata(refresh=True)
+            # Answered hellos and pings were not counted, their refusals were ("answers sent to robots").
+            assert value(scrape(rm), "robion_router_requests_total", model="", status="ok") == hellos_and_pings + 2
         after = scrape(em)
         assert value(after, "robion_requests_total", model="toy-a", status="ok") == 12
         assert value(after, "robion_requests_total", model="toy-a", status="shape_mismatch") == 1
@@ -139,3 +144,38 @@ def test_the_attainment_window_starts_again_for_a_model_a_reload_adds_or_changes
     m.serve_models({"a": 1.0, "b": 0.5})  # the same settings again (every heartbeat): nothing starts again
     m.observe_result("a", "ok", 2.0, 0, 0, 0)
     assert ratio("a") == 0.5
+
+
+def test_batch_sizes_up_to_the_largest_max_batch_have_a_bucket():
+    """Buckets stopped at 32 while engine.max_batch may be 256: a batch of 64, 128 or 256 fell only into +Inf, and
+    histogram_quantile read every one of them as 32."""
+    from shared.config import MAX_BATCH
+    from shared.metrics import BATCH_BUCKETS
+
+    assert max(BATCH_BUCKETS) >= MAX_BATCH and all(2 ** i in BATCH_BUCKETS for i in range(MAX_BATCH.bit_length()))
+
+
+def test_a_metrics_port_equal_to_a_zeromq_port_is_a_clash_and_a_taken_one_is_found(tmp_path):
+    """The router's metrics server took router.backend's port first, and its bind then failed as 'address in use',
+    blaming the backend address."""
+    import socket
+
+    from shared.cluster import metrics_port_clash, metrics_ports_taken
+
+    path, data = cluster_config(tmp_path)
+    backend_port = int(data["router"]["backend"].rsplit(":", 1)[1])
+    data["router"]["metrics_port"] = backend_port
+    import yaml
+    path.write_text(yaml.safe_dump(data))
+    assert metrics_port_clash(load_config(path)) == (
+        f"metrics port {backend_port} is both router.backend's and the router's on this host; give one another "
+        "metrics_port (executors default to 9110 + their index; 0 disables)")
+    (port,) = free_ports(1)
+    data["router"]["metrics_port"] = port
+    path.write_text(yaml.safe_dump(data))
+    assert metrics_ports_taken(load_config(path)) == []
+    with socket.socket() as holder:
+        holder.bind(("0.0.0.0", port))
+        holder.listen()
+        assert metrics_ports_taken(load_config(path)) == [
+            f"metrics port {port} (the router's) is taken on this host (Address already in use)"]

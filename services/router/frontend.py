@@ -368,9 +368,11 @@ class Router:
                                      label)
         if kind == "hello":
             table = self.routing.table
+            self.metrics.requests.labels("", "ok").inc()  # as the refusals of hellos and pings are counted
             self.frontend.send_multipart([robot, *encode(Metadata(id=rid, models=table.models))], copy=False)
             return
         if kind == "ping":
+            self.metrics.requests.labels("", "ok").inc()
             self.frontend.send_multipart([robot, *encode(Pong(id=rid))], copy=False)
             return
         if kind != "infer":
