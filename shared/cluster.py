@@ -113,6 +113,11 @@ def addresses_taken(cfg: ClusterConfig) -> list[str]:
     return problems
 
 
+# An executor's stop takes up to about 30 s: its drain waits for the control plane's traffic solve (at most 20 s) and
+# answer (1 s), then for the router's switch (3 s) and its last answers (5 s). Killed after 10 s, one with a slow solve
+# lost the answers it was finishing. docker-compose's stop_grace_period for executors is 40 s too.
+EXECUTOR_STOP_GRACE_S = 40.0
+
 # Exit codes after which a service is not started again: 0 is a clean stop (SIGTERM), 2 a refusal of its
 # configuration or device, which a restart would meet again (docs/operations.md, "Exit codes").
 NO_RESTART_CODES = (0, 2)
@@ -213,19 +218,20 @@ class LocalCluster:
     def alive(self) -> dict[str, bool]:
         return {name: p.poll() is None for name, p in self.procs.items()}
 
-    def stop(self, grace_s: float = 10.0) -> dict[str, int]:
+    def stop(self, grace_s: float = 10.0, executor_grace_s: float = EXECUTOR_STOP_GRACE_S) -> dict[str, int]:
         """Stop executors first (their last replies still pass the router), then router and control plane.
 
-        Each gets SIGTERM and ``grace_s`` to finish; stragglers are killed, so nothing outlives us.
+        Each gets SIGTERM and ``grace_s`` (executors ``executor_grace_s``) to finish; stragglers are killed, so
+        nothing outlives us.
         """
         codes: dict[str, int] = {}
         executors = [n for n in self.procs if n.startswith("executor")]
-        for wave in (executors, ["router"], ["control"]):
+        for wave, grace in ((executors, executor_grace_s), (["router"], grace_s), (["control"], grace_s)):
             procs = {n: self.procs[n] for n in wave if n in self.procs}
             for p in procs.values():
                 if p.poll() is None:
                     p.send_signal(signal.SIGTERM)
-            end = time.monotonic() + grace_s
+            end = time.monotonic() + grace
             for name, p in procs.items():
                 try:
                     codes[name] = p.wait(timeout=max(0.1, end - time.monotonic()))

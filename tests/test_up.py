@@ -13,6 +13,7 @@ import yaml
 
 from shared.client import RobotClient
 from shared.cluster import control_status
+from shared.config import load_config
 from tests.helpers import cluster_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -297,3 +298,21 @@ def test_restart_policy_backs_off_limits_failures_in_its_window_and_skips_clean_
     assert policy.after_exit("y", 1, 30.0)[0] == 1.0  # per service
     assert policy.after_exit("x", 1, 115.0)[0] == 5.0  # the failures at 0 and 10 s have left the window
     assert RestartPolicy(max_restarts=0).after_exit("x", 1, 0.0)[0] is None
+
+
+def test_stop_gives_an_executor_the_time_its_drain_can_take(tmp_path):
+    """An executor's stop waits for the control plane's solve (up to 20 s) before its last answers; `robion up` killed
+    it after 10 s. A stand-in that takes 11 s to stop after SIGTERM is let finish; a router that slow is not."""
+    from shared.cluster import LocalCluster
+
+    path, _ = cluster_config(tmp_path)
+    slow = ("import signal, sys, time\n"
+            "signal.signal(signal.SIGTERM, lambda *_: (time.sleep(11), sys.exit(0)))\n"
+            "print('ready', flush=True)\n"
+            "time.sleep(120)\n")
+    cluster = LocalCluster(load_config(path), path)
+    for name in ("executor[ex0]", "router"):
+        cluster.procs[name] = subprocess.Popen([sys.executable, "-c", slow], stdout=subprocess.PIPE, text=True)
+        assert cluster.procs[name].stdout.readline() == "ready\n"
+    codes = cluster.stop(grace_s=1.0)
+    assert codes == {"executor[ex0]": 0, "router": -9}
