@@ -94,6 +94,11 @@ def test_real_tokenizer_json(tmp_path):
     t.save(path)
     tok = PromptTokenizer(6, 100, path=path)
     assert tok("pick up cup now").tolist() == [2, 3, 4, 1, 0, 0]
+    # Special tokens spelt out in an instruction are text, not the tokens: "<pad>" was encoded as the pad id.
+    t.add_special_tokens(["<s>"])
+    t.save(path)
+    ids = PromptTokenizer(12, 100, path=path)("pick <pad> up <s> cup").tolist()
+    assert ids == [2, 1, 1, 1, 3, 1, 1, 1, 4, 0, 0, 0], ids  # "<", "pad", ">" are unknown words here
     with pytest.raises(ValueError, match="vocabulary"):
         PromptTokenizer(6, 3, path=path)
 
@@ -123,6 +128,8 @@ def test_weights_errors(tmp_path):
     m = build_model("xr0", "tiny")
     with pytest.raises(FileNotFoundError, match="weights file not found"):
         load_weights(m, str(tmp_path / "nope.safetensors"))
+    with pytest.raises(IsADirectoryError, match="is a directory"):  # it said "not found"
+        load_weights(m, str(tmp_path))
     sd = {k: v.clone() for k, v in m.state_dict().items()}
 
     missing = dict(sd)

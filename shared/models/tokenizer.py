@@ -74,6 +74,9 @@ class PromptTokenizer:
             # would fill prompts with its pad id, which the model then reads as text.
             tok.no_padding()
             tok.no_truncation()
+            # A robot's instruction is text: "<pad>" or "<|im_start|>" in it was encoded as the special token itself,
+            # so a client could put pad ids (read as padding) or control tokens mid-prompt.
+            tok.encode_special_tokens = True
             # The largest id, not the entry count: a vocabulary with gaps has ids past its size.
             size = max(tok.get_vocab(with_added_tokens=True).values(), default=-1) + 1
             pad = tok.id_to_token(self.pad_id)

@@ -59,8 +59,12 @@ def load_weights(model: VLAModel, path: str) -> VLAModel:
     """
     from safetensors import SafetensorError, safe_open
 
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"weights file {path} is a directory")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"weights file not found: {path}")
+    if not os.access(path, os.R_OK):  # the library says "No such file or directory" for a file it may not read
+        raise PermissionError(f"weights file {path} cannot be read (permission denied)")
     expected = model.state_dict()
     try:
         opened = safe_open(path, framework="pt", device="cpu")
