@@ -130,6 +130,17 @@ def test_tiny_fp32_triton_matches_reference(arch):
 
 @needs_cuda
 @pytest.mark.parametrize("arch", ARCHS)
+def test_full_models_in_bf16_follow_the_interface_an_executor_checks(arch):
+    """The check every executor runs before serving a model: at full size in bf16 on the GPU, each handoff tensor is
+    what handoff_spec (answered without running anything) says, and the actions are [B, horizon, action_dim]."""
+    from shared.models.base import check_interface
+
+    torch.cuda.empty_cache()
+    check_interface(build_model(arch, "full", seed=0, device="cuda"), batches=(1, 2, 4))
+
+
+@needs_cuda
+@pytest.mark.parametrize("arch", ARCHS)
 def test_full_graph_replay_equals_eager(arch):
     torch.cuda.empty_cache()
     m = build_model(arch, "full", seed=0, device="cuda")
