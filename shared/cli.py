@@ -291,6 +291,9 @@ def _ctl(args: argparse.Namespace) -> int:
         return 1
     if args.action != "apply":
         print(f"{args.action} {args.target}: routing table v{reply.get('version')}")
+        if reply.get("unrouted"):
+            print(f"warning: no other executor serves {', '.join(reply['unrouted'])}: their requests are answered "
+                  f"UNAVAILABLE until `robion ctl resume {args.target}`", file=sys.stderr)
         return 0
     print(f"applied: routing table v{reply['version']}; executors to reload in turn: {reply['steps'] or 'none'}")
     for name, models in (reply.get("unhosted") or {}).items():

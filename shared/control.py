@@ -19,7 +19,8 @@ control plane -> executor: load {models: [model config], load_id}  (a placement 
                            the executor registers again once it is over, its `load` naming load_id)
 operator -> control plane: apply {config}            -> applied {steps, version, unhosted, awaiting, host_wait_s,
                                                                  rollout}
-                           drain / resume {executor} -> ok {version}
+                           drain / resume {executor} -> ok {version, unrouted}  (unrouted: the models a drain
+                           left without a route, of which it was the only host)
 executor -> router (backend, empty robot frame): executor_hello {executor, instance, connection?}  (not
                            answered; at each connect and each heartbeat while connected. The instance is the
                            process's token, as in register: a new one under a known name is a restarted

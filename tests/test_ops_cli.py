@@ -225,6 +225,19 @@ def test_ctl_waits_out_the_traffic_solve_the_plane_runs_before_its_answer(tmp_pa
     assert "drain ex0: routing table v3" in res.stdout, res.stdout
 
 
+def test_ctl_drain_warns_of_the_models_it_leaves_without_a_host(tmp_path):
+    path, data = cluster_config(tmp_path)
+    plane = StandInPlane(data["control"]["bind"], [("status", {"status": {"control": {"solve_time_limit_s": 1}}}, 0.0),
+                                                    ("ok", {"version": 4, "unrouted": ["toy-b"]}, 0.0)])
+    try:
+        res = run("shared.cli", "ctl", "drain", "ex0", "-c", str(path))
+    finally:
+        plane.close()
+    assert res.returncode == 0 and "drain ex0: routing table v4" in res.stdout, res.stdout + res.stderr
+    assert ("warning: no other executor serves toy-b: their requests are answered UNAVAILABLE until "
+            "`robion ctl resume ex0`") in res.stderr, res.stderr
+
+
 def test_ctl_reports_a_plane_that_does_not_answer_at_once(tmp_path):
     """Nothing at the control address: a drain waited out its whole answer time (10 s plus the solve limit)."""
     import time

@@ -268,7 +268,9 @@ class ControlPlane:
             return self._error(peer, ControlError.UNKNOWN_EXECUTOR, f"no executor named {name!r} is registered")
         st.settle()
         log.info("%s %s (table v%d)", "drained" if kind == "drain" else "resumed", name, st.table.version)
-        self._reply(peer, "ok", version=st.table.version)
+        # What the drain leaves with no route at all (it was their only host), for the operator to hear at once.
+        unrouted = sorted(m for m in st.executors[name].models if not st.table.routes.get(m)) if kind == "drain" else []
+        self._reply(peer, "ok", version=st.table.version, unrouted=unrouted)
 
     def _handle(self, frames: list[bytes]) -> None:
         peer, body = frames[0], frames[-1]
