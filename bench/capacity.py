@@ -36,7 +36,7 @@ from typing import Any
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from services.executor.simulation import (PAPER_DEADLINES_MS, CapacityResult, EngineHost, Point,  # noqa: E402
+from services.executor.simulation import (PAPER_DEADLINES_MS, LAG_LIMIT, CapacityResult, EngineHost, Point,  # noqa: E402
                                           SimConfig, _json_safe, compare_capacity, engine_factory,
                                           served_models)
 from shared.config import NETWORKS  # noqa: E402
@@ -191,7 +191,7 @@ class Report:
         self.path = path
         # A model is this run's from its first point on (point()): one interrupted before it stays the earlier run's.
         self._models = dict(settings.get("models") or {})
-        self.doc: dict = {"schema": SCHEMA, "target": settings["target"], "capacity": {}, "complete": {},
+        self.doc: dict = {"schema": SCHEMA, "target": settings["target"], "capacity": {}, "capped": {}, "complete": {},
                           "ratios": {}, "deadlines_ms": {}, "curves": {}, "settings": {**settings, "models": {}},
                           "meta": meta_}
         self._fresh: set[str] = set()  # models this run has measured a point of
@@ -210,7 +210,7 @@ class Report:
             if differ:
                 raise SystemExit(f"--merge: {path} was measured otherwise ({'; '.join(differ)}): its capacities "
                                  "would not compare with this run's; write another file")
-            for key in ("capacity", "complete", "ratios", "deadlines_ms", "curves", "overlap_bound"):
+            for key in ("capacity", "capped", "complete", "ratios", "deadlines_ms", "curves", "overlap_bound"):
                 self.doc[key] = old.get(key, {})
             # Settings and meta of earlier runs stay with the models they measured (settings.models).
             self.doc["runs"] = [*old.get("runs", []), {"settings": old.get("settings"), "meta": old.get("meta")}]
@@ -221,7 +221,7 @@ class Report:
             # interrupted rerun must not leave new points on the old curves beside the old capacities. (Its
             # deadline and overlap bound are this run's already: written before its first point.)
             self._fresh.add(model)
-            for key in ("capacity", "complete", "ratios", "curves"):
+            for key in ("capacity", "capped", "complete", "ratios", "curves"):
                 self.doc.get(key, {}).pop(model, None)
             # Nor may an earlier run still claim it (settings.models): one run describes each model's results.
             for run in self.doc.get("runs", []):
@@ -235,6 +235,8 @@ class Report:
 
     def model_done(self, model: str, results: dict[str, CapacityResult], baseline: str | None) -> None:
         self.doc["capacity"][model] = {e: r.capacity for e, r in results.items()}
+        # Capacities at --max-robots are lower bounds: such a ratio would read as a measured one.
+        self.doc.setdefault("capped", {})[model] = {e: r.capped for e, r in results.items()}
         self.doc["complete"][model] = {e: True for e in results}
         self.doc["curves"][model] = {e: [_point_dict(p) for p in sorted(r.points, key=lambda p: p.robots)]
                                      for e, r in results.items()}
@@ -243,7 +245,8 @@ class Report:
         self.doc["ratios"].pop(model, None)
         if baseline in results:
             base = results[baseline].capacity
-            self.doc["ratios"][model] = {f"{e}/{baseline}": (r.capacity / base if base else None)
+            self.doc["ratios"][model] = {f"{e}/{baseline}": (r.capacity / base if base and not
+                                                             (r.capped or results[baseline].capped) else None)
                                          for e, r in results.items() if e != baseline}
         self.write()
 
@@ -319,7 +322,8 @@ def plot(doc: dict, path: Path) -> bool:
             pts = sorted(best.values(), key=lambda p: p["robots"])
             xs = [p["robots"] for p in pts]
             cap = doc["capacity"].get(model, {}).get(engine)
-            label = f"{engine} (cap {cap})" if cap is not None else engine
+            capped = (doc.get("capped") or {}).get(model, {}).get(engine)
+            label = f"{engine} (cap {'>= ' if capped else ''}{cap})" if cap is not None else engine
             line, = ax_slo.plot(xs, [100 * (p["slo_attainment"] or 0.0) for p in pts], marker="o", ms=3, label=label)
             ax_p99.plot(xs, [p["p99_ms"] if p["p99_ms"] is not None else float("nan") for p in pts],
                         marker="o", ms=3, color=line.get_color(), label=engine)
@@ -490,7 +494,11 @@ def main(argv: list[str] | None = None) -> int:
                 h.close()
             del served
         report.model_done(name, results, baseline)
-        caps = ", ".join(f"{e} {r.capacity}" for e, r in results.items())
+        caps = ", ".join(f"{e} {'>= ' if r.capped else ''}{r.capacity}" for e, r in results.items())
+        late = sorted({f"{e} {p.robots}" for e, r in results.items() for p in r.points if not p.lag_ok})
+        if late:
+            print(f"{name}: warning: the harness sent late (p99 lag over {100 * LAG_LIMIT:.0f}% of the deadline) at "
+                  f"{', '.join(late)}: those points measured the host too (docs/capacity.md, Send times)", flush=True)
         bound = report.doc["overlap_bound"][name]
         print(f"{name}: capacity at {100 * args.target:.0f}% SLO attainment: {caps}; overlap bound "
               f"{bound['bound']:.2f}x (VLM {bound['vlm_ms']:.2f} ms, action {bound['action_ms']:.2f} ms at batch "

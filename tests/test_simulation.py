@@ -682,3 +682,82 @@ def test_the_plot_shows_a_counts_full_run_over_its_screening(tmp_path, monkeypat
         pt(8, 0.99, 5, False), pt(9, 0.985, 1, True), pt(9, 0.85, 1, False)]}}}
     assert bench_capacity.plot(doc, tmp_path / "p.png")
     assert drawn[0] == ([8, 9], [99.0, 85.0])  # the SLO panel (the p99 panel follows)
+
+
+class _NoActionsEngine(Engine):
+    """Answers every request with neither actions nor an error."""
+
+    def step(self) -> bool:
+        _, batch, _ = self.queues.take(self.cfg.max_batch)
+        self.on_results([Result(r) for r in batch])
+        return bool(batch)
+
+
+class _SubmitRaisesOnce(QueueModelEngine):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.raised = False
+
+    def submit(self, req) -> None:
+        if not self.raised:
+            self.raised = True
+            raise ValueError("a bug in the engine's submit")
+        super().submit(req)
+
+
+def test_answers_without_actions_and_failed_submits_are_misses_and_the_epoch_goes_on(toy):
+    """An answer with neither actions nor an error counted as met; a submit raising anything but a protocol error
+    ended the driver, and the rest of the epoch was never sent (counted unanswered, silently)."""
+    cfg = EngineConfig(max_batch=1)
+    res = simulate(lambda sink: _NoActionsEngine(served(toy, 500), cfg, CPU, sink), [RobotGroup("toy", 2, 10.0)],
+                   SimConfig(epochs=1, duration_s=0.5, drain_s=0.1, network="none"))
+    s = res.models["toy"]
+    assert s.sent == 10 and s.met == 0 and s.errors == {"INTERNAL": 10}
+    engine_cfg = EngineConfig(max_batch=1, shed_expired=False)
+    res = simulate(lambda sink: _SubmitRaisesOnce(served(toy, 500), engine_cfg, CPU, sink, 0.001),
+                   [RobotGroup("toy", 2, 10.0)], SimConfig(epochs=1, duration_s=0.5, drain_s=0.1, network="none"))
+    s = res.models["toy"]
+    assert s.sent == 10 and s.met == 9 and s.errors == {"INTERNAL": 1} and s.no_reply == 0
+
+
+def test_an_epoch_shorter_than_one_period_is_refused(toy):
+    """Its epochs sent nothing, and their NaN attainment dropped out of the mean: one request decided the point."""
+    with pytest.raises(ValueError, match="shorter than one period of toy at 2 Hz"):
+        simulate(queue_model_factory(toy, 500, 0.001), [RobotGroup("toy", 2, 2.0)],
+                 SimConfig(epochs=2, duration_s=0.3))
+
+
+class _BusyDriverEngine(QueueModelEngine):
+    """Holds the GIL in its submit, as a busy Python scheduler would: the harness sends late."""
+
+    def submit(self, req) -> None:
+        end = time.monotonic() + 0.02
+        while time.monotonic() < end:
+            pass
+        super().submit(req)
+
+
+def test_a_point_the_harness_sent_late_is_flagged_and_a_capped_capacity_is_a_lower_bound(toy, tmp_path):
+    cfg = EngineConfig(max_batch=1, shed_expired=False)
+    sim = SimConfig(epochs=1, duration_s=0.5, drain_s=0.1, network="none")
+    late = measure_point(EngineHost(lambda sink: _BusyDriverEngine(served(toy, 200), cfg, CPU, sink, 0.001)),
+                         "toy", 8, 20.0, sim, 0.98)
+    assert not late.lag_ok and late.submit_lag_p99_ms > 0.05 * 200 and len(late.epoch_submit_lag_p99_ms) == 1
+    fine = measure_point(EngineHost(queue_model_factory(toy, 200, 0.001)), "toy", 2, 20.0, sim, 0.98)
+    assert fine.lag_ok and fine.submit_lag_p99_ms < 10
+
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import capacity as bench_capacity
+
+    # As in test_capacity_search_finds_the_analytic_threshold: b holds 2 robots at 40 Hz, a more than 4.
+    results = compare_capacity({"a": EngineHost(queue_model_factory(toy, 25, 0.0001), label="a"),
+                                "b": EngineHost(queue_model_factory(toy, 25, 1 / (40 * 2.2)), label="b")}, "toy",
+                               40.0, SimConfig(epochs=1, duration_s=0.6, drain_s=0.2, network="none"), max_robots=4,
+                               progress=False)
+    assert results["a"].capped and results["a"].capacity == 4
+    assert not results["b"].capped and results["b"].capacity == 2
+    report = bench_capacity.Report(tmp_path / "cap.json", {"target": 0.98}, {}, merge=False)
+    report.model_done("toy", results, "b")
+    doc = json.loads((tmp_path / "cap.json").read_text())
+    assert doc["capped"] == {"toy": {"a": True, "b": False}}
+    assert doc["ratios"] == {"toy": {"a/b": None}}  # a lower bound over a measurement is no ratio

@@ -304,7 +304,8 @@ class _Collector:
                 if o is None or o.done is not None:
                     continue  # not this epoch's, or answered twice: the first answer counts
                 o.done = max(now, r.done)
-                o.error = r.error[0].value if r.error is not None else None
+                # An answer without actions and without an error met nothing: it counted as met.
+                o.error = r.error[0].value if r.error is not None else None if r.actions is not None else "INTERNAL"
                 self._answered += 1
             if self._answered >= self._expected:
                 self.all_answered.set()
@@ -477,6 +478,9 @@ def _run_epoch(host: EngineHost, workload: Sequence[RobotGroup], cfg: SimConfig,
                 engine.submit(req)
             except ProtocolError as exc:
                 collector.refused(req.id, exc.code.value)
+            except Exception:  # the driver went on without it: the rest of the epoch was never sent
+                log.exception("engine.submit failed; the request counts as an INTERNAL error")
+                collector.refused(req.id, "INTERNAL")
 
     wall0 = time.monotonic()
     with host.running(collector) as engine:
@@ -517,6 +521,10 @@ def simulate(engine: EngineHost | EngineFactory, workload: Sequence[RobotGroup],
     to know that a point fails, and overloaded points are the slow ones).
     """
     cfg = cfg or SimConfig()
+    short = [g for g in workload if g.robots and cfg.duration_s * g.hz < 1]
+    if short:  # an epoch would send nothing for them, and its NaN attainment dropped out of the mean
+        raise ValueError(f"SimConfig.duration_s {cfg.duration_s:g} s is shorter than one period of {short[0].model} "
+                         f"at {short[0].hz:g} Hz")
     host = _as_host(engine)
     served = host.engine.models
     net = NETWORKS[cfg.network]
@@ -549,6 +557,9 @@ def simulate(engine: EngineHost | EngineFactory, workload: Sequence[RobotGroup],
 
 # ----------------------------------------------------------------------------- capacity search
 
+LAG_LIMIT = 0.05  # of the deadline: a point whose harness sent later than this (p99, in some epoch) is flagged
+
+
 @dataclass
 class Point:
     """One measured robot count."""
@@ -566,6 +577,11 @@ class Point:
     submit_lag_max_ms: float
     wall_s: float
     screened: bool = False  # a screening point of a search (fewer epochs than a full run)
+    # How late the harness itself sent (docs/capacity.md, "Send times"): the lag counts against the engine, so a
+    # point whose p99 lag is over LAG_LIMIT of the deadline in some epoch measured the host, not only the engine.
+    submit_lag_p99_ms: float = 0.0
+    epoch_submit_lag_p99_ms: list[float] = field(default_factory=list)
+    lag_ok: bool = True
     epoch_slo_attainment: list[float] = field(default_factory=list)
     epoch_p99_ms: list[float] = field(default_factory=list)
     telemetry: list[dict | None] = field(default_factory=list)
@@ -727,6 +743,8 @@ class CapacityResult:
     capacity: int
     points: list[Point]
     prepare_s: list[float]
+    # The search reached max_robots with every count passing: the capacity is a lower bound, not a measurement.
+    capped: bool = False
 
     def to_dict(self) -> dict:
         return _json_safe(dataclasses.asdict(self))
@@ -747,7 +765,9 @@ def measure_point(host: EngineHost, model: str, robots: int, hz: float, sim: Sim
                  sent=s.sent, misses=s.misses, errors=s.errors, no_reply=s.no_reply,
                  submit_lag_max_ms=res.submit_lag_max_ms, wall_s=time.monotonic() - t0,
                  epoch_slo_attainment=s.epoch_slo_attainment, epoch_p99_ms=s.epoch_p99_ms,
-                 telemetry=[ep.telemetry for ep in res.epochs])
+                 telemetry=[ep.telemetry for ep in res.epochs], submit_lag_p99_ms=res.submit_lag_p99_ms,
+                 epoch_submit_lag_p99_ms=[ep.submit_lag_p99_ms for ep in res.epochs],
+                 lag_ok=res.submit_lag_p99_ms <= LAG_LIMIT * res.deadlines_ms[model])
 
 
 def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.0, sim: SimConfig | None = None,
@@ -786,6 +806,10 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
                 search.record(point)
                 log.info("%s %s %d robots: SLO-AT %.3f p99 %.1f ms%s", model, name, n, point.slo_attainment,
                          point.p99_ms, "" if point.passed else " (fail)")
+                if not point.lag_ok:
+                    log.warning("%s %s %d robots: the harness sent late (p99 %.1f ms, over %.0f%% of the deadline): "
+                                "this point measured the host as much as the engine", model, name, n,
+                                point.submit_lag_p99_ms, 100 * LAG_LIMIT)
                 if on_point is not None:
                     on_point(name, point)
                 if bar is not None:
@@ -796,7 +820,8 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
             bar.close()
     return {name: CapacityResult(model=model, engine=name, target=target,
                                  mode="sweep" if robots is not None else "search", capacity=s.capacity,
-                                 points=s.points, prepare_s=list(hosts[name].prepare_s))
+                                 points=s.points, prepare_s=list(hosts[name].prepare_s),
+                                 capped=robots is None and s.capacity >= max_robots)
             for name, s in searches.items()}
 
 
