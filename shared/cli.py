@@ -301,8 +301,9 @@ def _ctl(args: argparse.Namespace) -> int:
               "their requests are answered UNAVAILABLE until it is back", file=sys.stderr)
     for name, models in (reply.get("awaiting") or {}).items():
         print(f"warning: {name} drops {', '.join(models)} only once another executor serves them, and their new hosts "
-              f"are not registered or are drained: start or resume them within {reply.get('host_wait_s', 30):g} s, "
-              f"or {name}'s step fails and it keeps them", file=sys.stderr)
+              f"are not registered or are drained: start or resume one; {name}'s step waits up to "
+              f"{reply.get('host_wait_s', 300):g} s for it once its turn comes, then fails and keeps them",
+              file=sys.stderr)
     if not args.wait:
         return 0
     end = time.monotonic() + args.timeout
@@ -338,8 +339,8 @@ def main(argv: list[str] | None = None) -> int:
     up.add_argument("--timeout", type=positive_seconds, default=300.0,
                     help="seconds to wait for the cluster to be ready")
     up.add_argument("--max-restarts", type=non_negative_int, default=5, metavar="N",
-                    help="start a service that fails (exit code other than 0 and 2, or killed) again after 1, 2, 4 "
-                         "... 30 s, up to N times within 300 s (default 5; 0: never)")
+                    help="start a service that fails (exit code other than 0 and 2, or killed) again, after 1 s "
+                         "doubling with each failure (at most 30 s), up to N times within 300 s (default 5; 0: never)")
     up.set_defaults(fn=cmd_up)
 
     demo = sub.add_parser("demo", help="start a cluster, drive a simulated fleet against it, print the SLO report")

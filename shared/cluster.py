@@ -118,14 +118,14 @@ def addresses_taken(cfg: ClusterConfig) -> list[str]:
 # lost the answers it was finishing. docker-compose's stop_grace_period for executors is 40 s too.
 EXECUTOR_STOP_GRACE_S = 40.0
 
-# Exit codes after which a service is not started again: 0 is a clean stop (SIGTERM), 2 a refusal of its
-# configuration or device, which a restart would meet again (docs/operations.md, "Exit codes").
+# Exit codes after which `robion up` does not start a service again: 0 is a clean stop (SIGTERM), 2 a refusal of its
+# configuration, device or models, which a restart would meet again (README, "How it fits together").
 NO_RESTART_CODES = (0, 2)
 
 
 class RestartPolicy:
     """When `robion up` starts a service that failed again: docker-compose's ``restart: on-failure``, with a back-off
-    and a limit. A crashed executor is otherwise gone for good under `up` (a failed reload that leaves it nothing to
+    and a limit, and without restarting exit code 2 (which compose restarts). A crashed executor is otherwise gone for good under `up` (a failed reload that leaves it nothing to
     serve exits 1 expressly for its supervisor), and the router and control plane are built to be restarted: robots
     and executors reconnect, executors register again.
 

@@ -445,3 +445,24 @@ def test_a_model_moved_to_a_drained_host_waits_for_its_resume():
     st.set_drained("ex0", False)
     ro.tick(st, lambda ex, models, load_id: None, now=5.0)
     assert ro.current.started and ro.failed == []
+
+
+def test_a_reload_queued_for_a_returning_host_goes_before_the_step_that_waits_for_it():
+    """ex0 came back (restarted, reading its old file: only a) while ex1 waited for b's new host; the reconcile that
+    would load b on ex0 was queued behind ex1's step, so the wait could only run out and the apply failed."""
+    from services.controlplane.rollout import Rollout, Step, plan_steps
+
+    c, st = _serving({"ex0": ["a"], "ex1": ["a", "b"]})
+    st.deregister("ex0")
+    new = _applied(c, {"ex0": ["a", "b"], "ex1": ["a"]})
+    steps = plan_steps(c, new, st)
+    assert [(s.executor, s.awaits) for s in steps] == [("ex1", ["b"])]
+    st.replace_config(new)
+    ro = Rollout(steps, host_wait_s=30.0)
+    ro.tick(st, lambda ex, models, load_id: None, now=1.0)
+    st.register("ex0", "cpu", {"a": _info()}, now=5.0, instance="ex0-2")
+    ro.pending.append(Step("ex0", [new.model("a"), new.model("b")]))  # as the control plane's _reconcile queues it
+    ro.tick(st, lambda ex, models, load_id: None, now=5.0)
+    assert [s.executor for s in ro.pending] == ["ex0", "ex1"] and ro.pending[1].waiting_since == 0.0
+    ro.tick(st, lambda ex, models, load_id: None, now=5.5)
+    assert ro.current.executor == "ex0" and ro.current.started and ro.failed == []

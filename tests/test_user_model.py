@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 import pytest
 import yaml
 
@@ -173,3 +174,40 @@ def test_an_engine_that_cannot_start_exits_2_with_one_line(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
     assert ("cannot start the monolithic engine for ['mine']: AssertionError: batches of 3 or more are not "
             "supported") in res.stderr, res.stderr[-2000:]
+
+
+ONE_ROBOT_AT_A_TIME = ("    def vlm_stage(self, images, state, tokens):\n",
+                       "    def vlm_stage(self, images, state, tokens):\n"
+                       "        assert images.shape[0] == 1, 'one robot at a time'\n")
+
+
+def test_a_model_that_raises_in_its_check_is_refused_with_one_line_and_exit_2(tmp_path):
+    """What a model's stage raised inside the check (anything but the check's own error) went out of main as a
+    traceback and exit 1, which asks a supervisor to start it again."""
+    path = user_config(tmp_path, "my_vla_one_at_a_time")
+    (tmp_path / "my_vla_one_at_a_time.py").write_text(docs_example().replace(*ONE_ROBOT_AT_A_TIME))
+    res = start_executor(path, tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert ("cannot load models: MyVLA.vlm_stage failed at batch 2: AssertionError: one robot at a time"
+            in res.stderr), res.stderr[-2000:]
+
+
+def test_a_model_served_one_robot_at_a_time_is_checked_at_batch_1_only_and_io_lists_are_fine():
+    """Checked at batch 2 regardless, a model served at max_batch 1 that takes one robot at a time was refused; and
+    lists where the docs show tuples (cameras, image_shape) were refused though they were served before."""
+    from services.executor.hosting import ModelStore
+    from shared.config import ModelConfig
+    from shared.models import register
+    from shared.models.base import InterfaceError
+
+    source = (docs_example().replace(*ONE_ROBOT_AT_A_TIME)
+              .replace('@register("my_vla")', '@register("my_vla_batch_one")')
+              .replace('cameras=("base",)', 'cameras=["base"]').replace("image_shape=(96, 96, 3)",
+                                                                         "image_shape=[96, 96, 3]"))
+    namespace: dict = {"register": register}
+    exec(compile(source, "my_vla_batch_one", "exec"), namespace)
+    mc = ModelConfig(name="mine", arch="my_vla_batch_one", size="tiny", slo_ms=500)
+    hosted = ModelStore(torch.device("cpu"), max_batch=1).load([mc])
+    assert hosted.inputs["mine"].info.cameras == ["base"]
+    with pytest.raises(InterfaceError, match="vlm_stage failed at batch 2"):
+        ModelStore(torch.device("cpu"), max_batch=2).load([mc])

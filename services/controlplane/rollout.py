@@ -165,8 +165,15 @@ def _drain(state: ClusterState, step: Step) -> None:
     step.drained_version = state.table.version
 
 
+# How long a step whose dropped models have no other host yet waits for one, from when its turn comes: long enough
+# for an executor started after the apply to start (on a GPU its graphs and profile take minutes), and its old host
+# serves them meanwhile.
+HOST_WAIT_S = 300.0
+
+
 class Rollout:
-    def __init__(self, steps: list[Step], timeout_s: float = 600.0, gone_s: float = 30.0, host_wait_s: float = 30.0):
+    def __init__(self, steps: list[Step], timeout_s: float = 600.0, gone_s: float = 30.0,
+                 host_wait_s: float = HOST_WAIT_S):
         self.pending = list(steps)
         self.timeout_s = timeout_s
         # How long a step whose dropped models have no other host yet (Step.awaits) waits for one.
@@ -217,6 +224,15 @@ class Rollout:
                                 "%.0f s for one (their new hosts are not registered or are drained)", step.executor,
                                 lost, self.host_wait_s)
                 if now - step.waiting_since <= self.host_wait_s:
+                    # A host of theirs that came back meanwhile with other models (restarted, reading its old file)
+                    # had its reload queued behind this step: it goes first, or the wait could only run out.
+                    ahead = next((s for s in self.pending[1:] if set(lost) & {m.name for m in s.models}), None)
+                    if ahead is not None:
+                        self.pending.remove(ahead)
+                        self.pending.insert(0, ahead)
+                        step.waiting_since = 0.0  # waits afresh when its turn comes back
+                        log.info("placement change: %s goes before %s, which waits for it to serve %s",
+                                 ahead.executor, step.executor, lost)
                     return
                 log.error("executor %s is the only host of %s, which its placement change drops, and no other "
                           "executor serves them after %.0f s (start or resume their new hosts, then apply again); "

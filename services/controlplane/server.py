@@ -251,8 +251,8 @@ class ControlPlane:
             awaiting = {s.executor: s.awaits for s in steps if s.awaits}
             for name, models in awaiting.items():
                 log.warning("apply: %s drops %s only once another executor serves them, and none registered and "
-                            "routed is to: start or resume their new hosts within %.0f s, or its step fails",
-                            name, models, self.rollout.host_wait_s)
+                            "routed is to: its step waits up to %.0f s for their new hosts to start or be resumed, "
+                            "then fails", name, models, self.rollout.host_wait_s)
             return self._reply(peer, "applied", steps=[s.executor for s in steps], version=st.table.version,
                                unhosted=unhosted, awaiting=awaiting, host_wait_s=self.rollout.host_wait_s,
                                rollout=self.rollout.id)

@@ -64,8 +64,9 @@ def _weights_key(mc: ModelConfig) -> tuple:
 class ModelStore:
     """Builds models from their configs; weights already on the device are reused by identity."""
 
-    def __init__(self, device: torch.device):
+    def __init__(self, device: torch.device, max_batch: int = 2):
         self.device = device
+        self.max_batch = max_batch
         self._loaded: dict[tuple, VLAModel] = {}
 
     def load(self, configs: list[ModelConfig]) -> Hosted:
@@ -81,7 +82,9 @@ class ModelStore:
                     from shared.models.weights import load_weights
 
                     load_weights(model, mc.weights)
-                check_interface(model)  # before an engine copies its outputs into buffers they may not fit
+                # Before an engine copies its outputs into buffers they may not fit; at batch 2 only where batches of
+                # 2 will be formed (a model served at max_batch 1 may take one robot at a time).
+                check_interface(model, batches=(1, 2) if self.max_batch >= 2 else (1,))
                 self._loaded[key] = model
                 log.info("loaded %s (%s/%s, seed %d) on %s", mc.name, mc.arch, mc.size, mc.seed, self.device)
             model = self._loaded[key]

@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         if short is not None:
             log.error("%s: %s", "--models" if index is None else f"executors[{index}].models", short)
             return 2
-    store = ModelStore(device)
+    store = ModelStore(device, cfg.engine.max_batch)
     try:
         hosted = store.load([cfg.model(name) for name in ex_cfg.models])
     except (OSError, ValueError, ImportError) as exc:  # weights or tokenizer files that do not fit
@@ -131,8 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         took = slot.start_while(hosted, lambda started: transport.answer_while_starting(started, stop))
     except Exception as exc:
-        # Exit 2, not a traceback and 1: 1 asks a supervisor to start it again, and a model that cannot be captured
-        # or profiled would fail the same way each time. The traceback is for the model's author.
+        # Exit 2, not a traceback and 1: 1 asks a supervisor to start it again (`robion up` leaves a 2 down), and a
+        # model that cannot be captured or profiled would fail the same way each time. The traceback is for the
+        # model's author.
         log.error("cannot start the %s engine for %s: %s: %s (--log-level debug shows where)",
                   resolve_kind(cfg.engine.kind, device), sorted(hosted.models), type(exc).__name__, exc)
         log.debug("engine start-up failed", exc_info=True)

@@ -114,11 +114,11 @@ def _check_io(io: ModelIO) -> list[str]:
     if not isinstance(io, ModelIO):
         return [f"io is a {type(io).__name__}, not a ModelIO"]
     cams = io.cameras
-    if (not isinstance(cams, tuple) or not cams or not all(isinstance(c, str) and c for c in cams)
+    if (not isinstance(cams, (tuple, list)) or not cams or not all(isinstance(c, str) and c for c in cams)
             or len(set(cams)) != len(cams)):
         problems.append(f"io.cameras: expected a tuple of one or more distinct camera names, got {cams!r}")
     shape = io.image_shape
-    if (not isinstance(shape, tuple) or len(shape) != 3 or shape[2] != 3
+    if (not isinstance(shape, (tuple, list)) or len(shape) != 3 or shape[2] != 3
             or not all(isinstance(d, int) and d >= 1 for d in shape)):
         problems.append(f"io.image_shape: expected (H, W, 3) of positive ints (robots send RGB), got {shape!r}")
     for field in ("state_dim", "prompt_len", "horizon", "action_dim", "steps"):
@@ -126,6 +126,17 @@ def _check_io(io: ModelIO) -> list[str]:
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             problems.append(f"io.{field}: expected a positive int, got {value!r}")
     return problems
+
+
+def _run(name: str, what: str, batch: int, call):
+    """``call()``, with whatever it raises as an InterfaceError naming the stage: a model that fails its check is
+    refused with one line (exit 2), not a traceback and exit 1, which asks a supervisor to start it again."""
+    try:
+        return call()
+    except InterfaceError:
+        raise
+    except Exception as exc:
+        raise InterfaceError(f"{name}.{what} failed at batch {batch}: {type(exc).__name__}: {exc}") from exc
 
 
 def check_interface(model: VLAModel, batches: tuple[int, ...] = (1, 2)) -> None:
@@ -143,7 +154,7 @@ def check_interface(model: VLAModel, batches: tuple[int, ...] = (1, 2)) -> None:
     device = next(model.parameters()).device
     with torch.inference_mode():
         for b in batches:
-            handoff = model.vlm_stage(*model.example_inputs(b, device))
+            handoff = _run(name, "vlm_stage", b, lambda: model.vlm_stage(*model.example_inputs(b, device)))
             if not isinstance(handoff, dict) or not handoff or not all(
                     isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in handoff.items()):
                 raise InterfaceError(f"{name}.vlm_stage: expected a dict of named tensors, got "
@@ -153,10 +164,10 @@ def check_interface(model: VLAModel, batches: tuple[int, ...] = (1, 2)) -> None:
                 if not shape or shape[0] != b:
                     raise InterfaceError(f"{name}.vlm_stage: handoff[{k!r}] has shape {list(shape)} at batch {b}; "
                                          "dim 0 must be the batch")
-            spec = {k: (tuple(s), d) for k, (s, d) in model.handoff_spec(b).items()}
+            spec = {k: (tuple(s), d) for k, (s, d) in _run(name, "handoff_spec", b, lambda: model.handoff_spec(b)).items()}
             if got != spec:
                 raise InterfaceError(f"{name}: at batch {b} vlm_stage returned {got}, but handoff_spec says {spec}")
-            actions = model.action_stage(handoff, model.noise(b, device))
+            actions = _run(name, "action_stage", b, lambda: model.action_stage(handoff, model.noise(b, device)))
             want = (b, io.horizon, io.action_dim)
             if not isinstance(actions, torch.Tensor) or tuple(actions.shape) != want:
                 got_shape = list(actions.shape) if isinstance(actions, torch.Tensor) else type(actions).__name__

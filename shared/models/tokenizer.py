@@ -76,6 +76,8 @@ class PromptTokenizer:
             tok.no_truncation()
             # A robot's instruction is text: "<pad>" or "<|im_start|>" in it was encoded as the special token itself,
             # so a client could put pad ids (read as padding) or control tokens mid-prompt.
+            if not hasattr(tok, "encode_special_tokens"):  # 0.15.0 takes the assignment and ignores it
+                raise ImportError(f"loading {path} needs tokenizers >= 0.15.1 (pip install -U tokenizers)")
             tok.encode_special_tokens = True
             # The largest id, not the entry count: a vocabulary with gaps has ids past its size.
             size = max(tok.get_vocab(with_added_tokens=True).values(), default=-1) + 1
