@@ -14,7 +14,8 @@ router   -> control plane: table_get {version, role, executors?}
                            executors that outlived its restart register again; after each (re)connect to
                            the control plane a router reports version -1 and names its table's executors)
 anyone   -> control plane: status                    -> status {executors, table, router, expected, limits,
-                                                                control, settling, ready, rollout, apply}
+                                                                control, settling, ready, rollout, apply,
+                                                                drift}
 control plane -> executor: load {models: [model config], load_id}  (a placement change's reload; not answered:
                            the executor registers again once it is over, its `load` naming load_id)
 operator -> control plane: apply {config}            -> applied {steps, version, unhosted, awaiting, host_wait_s,

@@ -199,3 +199,31 @@ def test_an_executor_killed_after_its_own_drain_is_routed_again_when_it_restarts
         cp_stop.set()
         cp_thread.join(10)
         ctx.term()
+
+
+def test_status_names_executors_that_serve_other_than_the_desired_state(tmp_path):
+    """After a restart the plane knows only its file: status read `ready` while executors served an earlier apply's
+    models or settings, and nothing showed the difference."""
+    from services.controlplane.server import ControlPlane
+    from shared.config import settings_digest
+
+    path, data = cluster_config(tmp_path)  # ex0 hosts toy-a and toy-b, ex1 toy-a
+    cfg = load_config(path)
+    stop = threading.Event()
+    t = threading.Thread(target=ControlPlane(cfg).run, args=(stop,), daemon=True)
+    t.start()
+    try:
+        digest = settings_digest(cfg.model("toy-a"))
+        reply = control_request(cfg.control.bind, "register", timeout_s=WAIT_S, executor="ex0", device="cpu",
+                                instance="i0", models={"toy-a": TOY_INFO}, settings={"toy-a": digest})
+        assert reply is not None and reply["kind"] == "registered", reply
+        reply = control_request(cfg.control.bind, "register", timeout_s=WAIT_S, executor="ex1", device="cpu",
+                                instance="i1", models={"toy-a": TOY_INFO}, settings={"toy-a": "another"})
+        assert reply is not None and reply["kind"] == "registered", reply
+        status = control_status(cfg.control.bind, WAIT_S)
+        assert status["drift"] == {
+            "ex0": {"serves": ["toy-a"], "desired": ["toy-a", "toy-b"], "settings_differ": []},
+            "ex1": {"serves": ["toy-a"], "desired": ["toy-a"], "settings_differ": ["toy-a"]}}, status["drift"]
+    finally:
+        stop.set()
+        t.join(10)

@@ -179,6 +179,21 @@ class ControlPlane:
         else:
             self.rollout.pending.append(step)
 
+    def _drift(self) -> dict[str, dict]:
+        """Executors whose registered models or settings are not what this plane's desired state says: after a
+        restart of the plane (it knows only its file, and applies nothing until an apply of its own) status read
+        `ready` while executors served an earlier apply's placement, and nothing showed it."""
+        st, out = self.state, {}
+        for name, ex in st.executors.items():
+            wanted = desired_models(st.cfg, name, ex.models)
+            if wanted is None:
+                continue
+            differ = sorted(m for m in wanted if ex.settings is not None and m in ex.settings
+                            and ex.settings[m] != settings_digest(st.cfg.model(m)))
+            if set(wanted) != set(ex.models) or differ:
+                out[name] = {"serves": sorted(ex.models), "desired": sorted(wanted), "settings_differ": differ}
+        return out
+
     def _send_load(self, executor: str, models: list[ModelConfig], load_id: str) -> None:
         self.sock.send_multipart([executor.encode(), control.pack("load", models=[asdict(m) for m in models],
                                                                   load_id=load_id)])
@@ -367,6 +382,7 @@ class ControlPlane:
             status = st.status()
             status["rollout"] = self.rollout.status() if self.rollout is not None else None
             status["apply"] = self.applied_rollout.status() if self.applied_rollout is not None else None
+            status["drift"] = self._drift()
             self._reply(peer, "status", status=status)
         else:  # apply, drain, resume
             self._admin(peer, kind, msg)
