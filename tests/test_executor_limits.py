@@ -301,3 +301,16 @@ def test_a_model_that_misses_its_deadline_with_one_robot_gets_no_limit(tmp_path,
     with caplog.at_level(logging.WARNING, logger="robion.executor"):
         assert measure_limits(cfg, "ex0", hosted.models, CPU) == {}
     assert any("missed the target at that count" in r.getMessage() for r in caplog.records)
+
+
+def test_a_model_called_less_often_than_once_per_measuring_epoch_is_measured_over_one_period(tmp_path):
+    """At 0.5 Hz and duration_s 0.5 an epoch sends nothing: the harness refuses that, and the executor's start
+    crashed on it (exit 1, restarted in a loop)."""
+    path, data = cluster_config(tmp_path, executors=[{"name": "ex0", "device": "cpu", "models": ["toy-a"]}],
+                                models=[{"name": "toy-a", "arch": "toy", "size": "tiny", "seed": 0, "slo_ms": 500,
+                                         "hz": 0.5}])
+    data["control"]["limits"] = {"auto": True, "epochs": 1, "duration_s": 0.5, "max_robots": 2, "progress": False}
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_config(path)
+    hosted = ModelStore(CPU).load([cfg.model("toy-a")])
+    assert measure_limits(cfg, "ex0", hosted.models, CPU) == {"toy-a": 2}

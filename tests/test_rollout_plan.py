@@ -447,22 +447,39 @@ def test_a_model_moved_to_a_drained_host_waits_for_its_resume():
     assert ro.current.started and ro.failed == []
 
 
-def test_a_reload_queued_for_a_returning_host_goes_before_the_step_that_waits_for_it():
-    """ex0 came back (restarted, reading its old file: only a) while ex1 waited for b's new host; the reconcile that
-    would load b on ex0 was queued behind ex1's step, so the wait could only run out and the apply failed."""
+def _returning_host(before: dict[str, list[str]], after: dict[str, list[str]]):
+    """ex0 is down while ``after`` is applied: ex1's step waits for ex0 to host what ex1 drops. ex0 then comes back
+    with its file's models (a) and its reload to ``after`` is queued, as the control plane's _reconcile queues it."""
     from services.controlplane.rollout import Rollout, Step, plan_steps
 
-    c, st = _serving({"ex0": ["a"], "ex1": ["a", "b"]})
+    c, st = _serving(before)
     st.deregister("ex0")
-    new = _applied(c, {"ex0": ["a", "b"], "ex1": ["a"]})
+    new = _applied(c, after)
     steps = plan_steps(c, new, st)
     assert [(s.executor, s.awaits) for s in steps] == [("ex1", ["b"])]
     st.replace_config(new)
     ro = Rollout(steps, host_wait_s=30.0)
     ro.tick(st, lambda ex, models, load_id: None, now=1.0)
     st.register("ex0", "cpu", {"a": _info()}, now=5.0, instance="ex0-2")
-    ro.pending.append(Step("ex0", [new.model("a"), new.model("b")]))  # as the control plane's _reconcile queues it
+    ro.pending.append(Step("ex0", [new.model(m) for m in after["ex0"]]))
     ro.tick(st, lambda ex, models, load_id: None, now=5.0)
-    assert [s.executor for s in ro.pending] == ["ex0", "ex1"] and ro.pending[1].waiting_since == 0.0
+    return st, ro
+
+
+def test_a_reload_queued_for_a_returning_host_goes_before_the_step_that_waits_for_it():
+    """ex0 came back (restarted, reading its old file: only a) while ex1 waited for b's new host; the reconcile that
+    would load b on ex0 was queued behind ex1's step, so the wait could only run out and the apply failed."""
+    st, ro = _returning_host({"ex0": ["a"], "ex1": ["a", "b"]}, {"ex0": ["a", "b"], "ex1": ["a"]})
+    assert [s.executor for s in ro.pending] == ["ex0", "ex1"] and ro.pending[1].waiting_since == 1.0
+    ro.tick(st, lambda ex, models, load_id: None, now=5.5)
+    assert ro.current.executor == "ex0" and ro.current.started and ro.failed == []
+
+
+def test_a_returning_host_moved_ahead_in_a_swap_hands_its_model_over():
+    """ex0 (a) and ex1 (b) swap while ex0 is down. ex1 waits for b's new host; ex0 comes back with a and its reload to
+    b is moved ahead of the wait. It failed at once ("the only host of a"), and ex1 then waited out a fresh 300 s."""
+    st, ro = _returning_host({"ex0": ["a"], "ex1": ["b"]}, {"ex0": ["b"], "ex1": ["a"]})
+    assert [(s.executor, s.unhosted) for s in ro.pending] == [("ex0", ["a"]), ("ex1", [])]
+    assert ro.pending[1].waiting_since == 1.0  # the wait keeps its clock
     ro.tick(st, lambda ex, models, load_id: None, now=5.5)
     assert ro.current.executor == "ex0" and ro.current.started and ro.failed == []

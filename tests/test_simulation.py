@@ -451,7 +451,9 @@ def test_cli_writes_capacity_json_and_plot(tmp_path):
     doc = json.loads(out.read_text())
     assert doc["schema"] == "robion.capacity/1" and doc["target"] == 0.98
     assert doc["capacity"] == {"toy": {"monolithic": 2, "rr": 2}}
-    assert doc["ratios"] == {"toy": {"rr/monolithic": 1.0}}
+    # Both passed the sweep's largest count: lower bounds, so no ratio.
+    assert doc["capped"] == {"toy": {"monolithic": True, "rr": True}}
+    assert doc["ratios"] == {"toy": {"rr/monolithic": None}}
     assert doc["complete"] == {"toy": {"monolithic": True, "rr": True}}
     assert doc["deadlines_ms"] == {"toy": 500.0}
     bound = doc["overlap_bound"]["toy"]
@@ -761,3 +763,26 @@ def test_a_point_the_harness_sent_late_is_flagged_and_a_capped_capacity_is_a_low
     doc = json.loads((tmp_path / "cap.json").read_text())
     assert doc["capped"] == {"toy": {"a": True, "b": False}}
     assert doc["ratios"] == {"toy": {"a/b": None}}  # a lower bound over a measurement is no ratio
+
+
+class _SubmitAlwaysRaises(QueueModelEngine):
+    def submit(self, req) -> None:
+        raise ValueError("broken")
+
+
+def test_a_submit_that_keeps_failing_logs_one_traceback_an_epoch_and_a_sweep_that_passes_is_capped(toy, caplog):
+    """One traceback per request slowed the driver (400 of them in a 2 s epoch); a sweep whose every count passed
+    reported its largest count as measured, and a ratio of two such lower bounds."""
+    import logging
+
+    engine_cfg = EngineConfig(max_batch=1, shed_expired=False)
+    with caplog.at_level(logging.WARNING, logger="services.executor.simulation"):
+        res = simulate(lambda sink: _SubmitAlwaysRaises(served(toy, 500), engine_cfg, CPU, sink, 0.001),
+                       [RobotGroup("toy", 4, 20.0)], SimConfig(epochs=1, duration_s=0.5, drain_s=0.1, network="none"))
+    assert res.models["toy"].errors == {"INTERNAL": 40}
+    assert sum(r.exc_info is not None for r in caplog.records) == 1
+    assert any("failed for 40 requests" in r.getMessage() for r in caplog.records)
+    results = compare_capacity({"a": EngineHost(queue_model_factory(toy, 500, 0.0001), label="a")}, "toy", 10.0,
+                               SimConfig(epochs=1, duration_s=0.3, drain_s=0.1, network="none"), robots=[1, 2],
+                               progress=False)
+    assert results["a"].capacity == 2 and results["a"].capped

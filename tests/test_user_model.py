@@ -211,3 +211,20 @@ def test_a_model_served_one_robot_at_a_time_is_checked_at_batch_1_only_and_io_li
     assert hosted.inputs["mine"].info.cameras == ["base"]
     with pytest.raises(InterfaceError, match="vlm_stage failed at batch 2"):
         ModelStore(torch.device("cpu"), max_batch=2).load([mc])
+
+
+def test_a_device_fault_in_the_check_is_not_a_refusal_of_the_model():
+    """Out of device memory (maybe held by a process that just crashed) is no fault of the model: refused as one
+    (exit 2), the executor was never started again. And a handoff_spec that is no mapping is a refusal, not a
+    traceback."""
+    from shared.models.base import InterfaceError, check_interface
+
+    model = example_model(docs_example().replace(*ONE_ROBOT_AT_A_TIME).replace(
+        "        assert images.shape[0] == 1, 'one robot at a time'\n",
+        "        raise torch.OutOfMemoryError('CUDA out of memory. Tried to allocate 2.00 GiB')\n"))
+    with pytest.raises(torch.OutOfMemoryError):
+        check_interface(model)
+    model = example_model(docs_example())
+    model.handoff_spec = lambda batch: [("ctx", ((batch, 32), torch.float32))]
+    with pytest.raises(InterfaceError, match="handoff_spec: expected"):
+        check_interface(model)

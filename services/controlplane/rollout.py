@@ -230,7 +230,13 @@ class Rollout:
                     if ahead is not None:
                         self.pending.remove(ahead)
                         self.pending.insert(0, ahead)
-                        step.waiting_since = 0.0  # waits afresh when its turn comes back
+                        # A swap: what it drops as the only host, this step takes over once it runs. Left without a
+                        # host for the two reloads (as plan_steps names a swap's models), not a reason to fail it.
+                        ahead_serves = serving.get(ahead.executor, set())
+                        swapped = (_only_host(serving, ahead.executor, ahead_serves) & defined
+                                   & {m.name for m in step.models}) - {m.name for m in ahead.models}
+                        ahead.unhosted = sorted(set(ahead.unhosted) | swapped)
+                        # The wait keeps its clock: a reload that fails gives the host no second 300 s.
                         log.info("placement change: %s goes before %s, which waits for it to serve %s",
                                  ahead.executor, step.executor, lost)
                     return

@@ -173,8 +173,10 @@ def measure_limits(cfg: ClusterConfig, executor: str, models: dict[str, ServedMo
         engine_cfg = dataclasses.replace(cfg.engine, telemetry_file=None)
         try:
             result = find_capacity(lambda sink: make_engine({name: served}, engine_cfg, device, sink), name,
-                                   hz=mc.hz, sim=SimConfig(epochs=lc.epochs, duration_s=lc.duration_s, seed=lc.seed,
-                                                           network=lc.network),
+                                   # At least one period: a model called less often than once per duration_s
+                                   # would send nothing in an epoch (the harness refuses that).
+                                   hz=mc.hz, sim=SimConfig(epochs=lc.epochs, duration_s=max(lc.duration_s, 1 / mc.hz),
+                                                           seed=lc.seed, network=lc.network),
                                    target=lc.target, max_robots=lc.max_robots, progress=lc.progress, cancel=stop)
         except SearchCancelled:
             log.info("stopped while measuring the robot limit of %s", name)

@@ -13,6 +13,7 @@ from services.executor.limits import measure_limits
 from services.executor.transport import ExecutorIO
 from shared.config import ClusterConfig, ExecutorConfig, executor_name_problem, parse_devices, valid_device
 from shared.metrics import ExecutorMetrics, serve
+from shared.models.base import is_device_fault
 from shared.placement import memory_shortfall
 from shared.service import load_or_exit, service_args, setup_logging, stop_event
 
@@ -131,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         took = slot.start_while(hosted, lambda started: transport.answer_while_starting(started, stop))
     except Exception as exc:
+        if is_device_fault(exc):  # out of device memory (maybe held by a process that just crashed): exit 1, restart
+            raise
         # Exit 2, not a traceback and 1: 1 asks a supervisor to start it again (`robion up` leaves a 2 down), and a
         # model that cannot be captured or profiled would fail the same way each time. The traceback is for the
         # model's author.

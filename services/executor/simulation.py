@@ -463,6 +463,7 @@ def _run_epoch(host: EngineHost, workload: Sequence[RobotGroup], cfg: SimConfig,
         plan.append((s.t, req, out))
     collector = _Collector(outcomes)
     lags = np.zeros(len(plan))
+    failed_submits: list[str] = []
 
     def drive(engine: Engine, t0: float) -> None:
         for j, (t, req, out) in enumerate(plan):
@@ -479,7 +480,9 @@ def _run_epoch(host: EngineHost, workload: Sequence[RobotGroup], cfg: SimConfig,
             except ProtocolError as exc:
                 collector.refused(req.id, exc.code.value)
             except Exception:  # the driver went on without it: the rest of the epoch was never sent
-                log.exception("engine.submit failed; the request counts as an INTERNAL error")
+                if not failed_submits:  # one traceback an epoch: one per request slowed the driver itself
+                    log.exception("engine.submit failed; such requests count as INTERNAL errors")
+                failed_submits.append(req.id)
                 collector.refused(req.id, "INTERNAL")
 
     wall0 = time.monotonic()
@@ -494,6 +497,8 @@ def _run_epoch(host: EngineHost, workload: Sequence[RobotGroup], cfg: SimConfig,
         end = t0 + cfg.duration_s + max(cfg.drain_s, max((mi.slo_s for mi in inputs.values()), default=0.0))
         collector.all_answered.wait(max(0.0, end - time.monotonic()))
         telemetry = _telemetry(engine, "end")
+    if len(failed_submits) > 1:
+        log.warning("engine.submit failed for %d requests of epoch %d", len(failed_submits), epoch)
     # Stopping the engine answers what was still queued (with an error): those are misses too.
 
     by_model: dict[str, list[_Outcome]] = {g.model: [] for g in workload}
@@ -821,7 +826,7 @@ def compare_capacity(hosts: Mapping[str, EngineHost], model: str, hz: float = 2.
     return {name: CapacityResult(model=model, engine=name, target=target,
                                  mode="sweep" if robots is not None else "search", capacity=s.capacity,
                                  points=s.points, prepare_s=list(hosts[name].prepare_s),
-                                 capped=robots is None and s.capacity >= max_robots)
+                                 capped=s.capacity >= (max(robots) if robots else max_robots))
             for name, s in searches.items()}
 
 

@@ -128,14 +128,24 @@ def _check_io(io: ModelIO) -> list[str]:
     return problems
 
 
+def is_device_fault(exc: BaseException) -> bool:
+    """Out of device memory, or an error of the device itself: not the model's fault, and maybe gone after a restart
+    (memory a crashed process still held), so not a reason to refuse the model for good."""
+    return isinstance(exc, torch.OutOfMemoryError) or (
+        isinstance(exc, RuntimeError) and ("CUDA" in str(exc) or type(exc).__name__ == "AcceleratorError"))
+
+
 def _run(name: str, what: str, batch: int, call):
     """``call()``, with whatever it raises as an InterfaceError naming the stage: a model that fails its check is
-    refused with one line (exit 2), not a traceback and exit 1, which asks a supervisor to start it again."""
+    refused with one line (exit 2), not a traceback and exit 1, which asks a supervisor to start it again. A device
+    fault (is_device_fault) is raised as it is."""
     try:
         return call()
     except InterfaceError:
         raise
     except Exception as exc:
+        if is_device_fault(exc):
+            raise
         raise InterfaceError(f"{name}.{what} failed at batch {batch}: {type(exc).__name__}: {exc}") from exc
 
 
@@ -164,7 +174,10 @@ def check_interface(model: VLAModel, batches: tuple[int, ...] = (1, 2)) -> None:
                 if not shape or shape[0] != b:
                     raise InterfaceError(f"{name}.vlm_stage: handoff[{k!r}] has shape {list(shape)} at batch {b}; "
                                          "dim 0 must be the batch")
-            spec = {k: (tuple(s), d) for k, (s, d) in _run(name, "handoff_spec", b, lambda: model.handoff_spec(b)).items()}
+            spec = _run(name, "handoff_spec", b, lambda: model.handoff_spec(b))
+            if not isinstance(spec, dict):
+                raise InterfaceError(f"{name}.handoff_spec: expected {{name: (shape, dtype)}}, got {type(spec).__name__}")
+            spec = _run(name, "handoff_spec", b, lambda: {k: (tuple(s), d) for k, (s, d) in spec.items()})
             if got != spec:
                 raise InterfaceError(f"{name}: at batch {b} vlm_stage returned {got}, but handoff_spec says {spec}")
             actions = _run(name, "action_stage", b, lambda: model.action_stage(handoff, model.noise(b, device)))
