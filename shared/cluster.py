@@ -125,9 +125,9 @@ NO_RESTART_CODES = (0, 2)
 
 class RestartPolicy:
     """When `robion up` starts a service that failed again: docker-compose's ``restart: on-failure``, with a back-off
-    and a limit, and without restarting exit code 2 (which compose restarts). A crashed executor is otherwise gone for good under `up` (a failed reload that leaves it nothing to
-    serve exits 1 expressly for its supervisor), and the router and control plane are built to be restarted: robots
-    and executors reconnect, executors register again.
+    and a limit, and without restarting exit code 2 (which compose restarts). A crashed executor is otherwise gone for
+    good under `up` (a failed reload that leaves it nothing to serve exits 1 expressly for its supervisor), and the
+    router and control plane are built to be restarted: robots and executors reconnect, executors register again.
 
     The n-th failure of a name within ``window_s`` waits ``backoff_s[n-1]`` (the last entry from then on) before its
     restart; failure ``max_restarts + 1`` within the window is not restarted, so a service that cannot start does not
@@ -145,7 +145,7 @@ class RestartPolicy:
     def after_exit(self, name: str, code: int, now: float) -> tuple[float | None, str]:
         """Seconds to wait before starting ``name`` again (None: leave it down), and why, for the operator."""
         if code in NO_RESTART_CODES:
-            return None, ("stopped cleanly" if code == 0 else "refused its configuration or device") + ", not restarted"
+            return None, ("stopped cleanly" if code == 0 else "refused its configuration, device or models") + ", not restarted"
         recent = [t for t in self._failures.get(name, []) if now - t < self.window_s] + [now]
         self._failures[name] = recent
         if len(recent) > self.max_restarts:

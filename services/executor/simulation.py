@@ -304,8 +304,10 @@ class _Collector:
                 if o is None or o.done is not None:
                     continue  # not this epoch's, or answered twice: the first answer counts
                 o.done = max(now, r.done)
-                # An answer without actions and without an error met nothing: it counted as met.
-                o.error = r.error[0].value if r.error is not None else None if r.actions is not None else "INTERNAL"
+                if r.error is not None:
+                    o.error = r.error[0].value
+                elif r.actions is None:  # no actions and no error met nothing: it counted as met
+                    o.error = "INTERNAL"
                 self._answered += 1
             if self._answered >= self._expected:
                 self.all_answered.set()
