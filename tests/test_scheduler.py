@@ -132,6 +132,18 @@ def test_service_times_estimate_is_a_high_quantile_of_a_recent_window():
     assert t.estimate(1.0 + ServiceTimes.STALE_S + 0.1) == 0.0  # no reply for a while: measured afresh
 
 
+def test_a_slow_burst_ages_out_of_the_estimate_while_replies_keep_coming():
+    """The window expired only after STALE_S without any reply: after a burst of 49 ms batches, the 20 ms ones that
+    followed kept it alive, and the p90 stayed at 49 ms (shedding requests a 50 ms deadline could meet) until 58 new
+    measurements had pushed the old ones out, about 5 s at the trickle it let through."""
+    t = ServiceTimes()
+    for i in range(ServiceTimes.WINDOW):
+        t.note(0.049, now=i * 0.005)
+    for i in range(10):  # ten replies over the next 1.5 s
+        t.note(0.020, now=0.4 + i * 0.15)
+    assert t.estimate(0.4 + 9 * 0.15) == pytest.approx(0.020)
+
+
 def test_shed_late_never_sheds_for_an_estimate_no_request_could_beat():
     """After a stall the estimate can exceed a model's whole deadline. Shedding every request would then
     keep it there (no batch runs, nothing is measured): such an estimate sheds nothing, the requests run
@@ -254,11 +266,22 @@ def test_a_queue_full_of_late_requests_takes_a_fresh_one_and_answers_the_late_at
 
 
 def test_requests_a_full_queue_shed_are_answered_at_shutdown_too():
+    """As DEADLINE_EXCEEDED, which they are: the engine's stop answered them UNAVAILABLE ("retry") with the queued,
+    so a robot could send again a request already past its deadline."""
     q = ModelQueues(["a"], max_queue=1)
     now = time.monotonic()
     q.put(req("a", "old", now - 1.0, now - 0.5))
     q.put(req("a", "fresh", now, now + 60.0))
-    assert sorted(r.id for r in q.close()) == ["fresh", "old"]
+    queued, shed = q.close()
+    assert [r.id for r in queued] == ["fresh"] and [r.id for r in shed] == ["old"]
+    answers: list = []
+    engine = MonolithicEngine({"toy": ServedModel("toy", build_model("toy", seed=1), 0.5)},
+                              EngineConfig(max_batch=2, max_queue=1), torch.device("cpu"), answers.extend)
+    engine.submit(req("toy", "old", now - 1.0, now - 0.5))
+    engine.submit(req("toy", "fresh", now, now + 60.0))
+    engine.finish()
+    assert sorted((r.request.id, r.error[0]) for r in answers) == [("fresh", ErrorCode.UNAVAILABLE),
+                                                                  ("old", ErrorCode.DEADLINE_EXCEEDED)]
 
 
 def test_a_new_run_of_the_engine_starts_shed_late_afresh():

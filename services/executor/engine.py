@@ -96,8 +96,9 @@ class Engine:
 
     def finish(self) -> None:
         """Answer everything still queued at shutdown; later submits are refused (UNAVAILABLE)."""
-        pending = self.queues.close()
-        self._emit([Result(r, error=(ErrorCode.UNAVAILABLE, "executor is shutting down")) for r in pending])
+        pending, shed = self.queues.close()
+        self._emit(self._expired_results(shed)
+                   + [Result(r, error=(ErrorCode.UNAVAILABLE, "executor is shutting down")) for r in pending])
 
     def _emit(self, results: list[Result]) -> None:
         """Hand results to the sink. Its fault (the I/O layer's) must neither stop the engine's loop nor lose the

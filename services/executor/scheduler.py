@@ -92,38 +92,31 @@ class ServiceTimes:
     engine's current lockstep length (which co-located models and batch sizes change) and is rarely below
     what a request taken now will take.
 
-    Measurements expire: an estimate above the model's whole deadline (after a stall, a reload, a burst
-    of slow locksteps) would shed every request, so no batch would run and nothing would ever lower it.
-    Without a reply for ``STALE_S`` the window is dropped and the next requests run and measure afresh."""
+    Measurements expire, each ``STALE_S`` after it was taken: an estimate above the model's whole deadline (after a
+    stall, a reload, a burst of slow locksteps) would shed every request, so no batch would run and nothing would
+    ever lower it. The window as a whole used to expire only after ``STALE_S`` without any reply, so the trickle of
+    requests a too-high estimate still let through kept it alive: after a slow burst, nine in ten requests that could
+    make a 50 ms deadline were shed for about 5 s."""
 
     WINDOW = 64
     QUANTILE = 0.9
     STALE_S = 1.0
 
     def __init__(self) -> None:
-        self._recent: deque[float] = deque(maxlen=self.WINDOW)
-        self._estimate = 0.0
-        self._last = float("-inf")
+        self._recent: deque[tuple[float, float]] = deque(maxlen=self.WINDOW)  # (when, seconds)
 
     def note(self, seconds: float, now: float | None = None) -> None:
-        now = time.monotonic() if now is None else now
-        if now - self._last > self.STALE_S:  # a stale window is dropped: this reply starts a fresh one
-            self._recent.clear()
-        self._recent.append(seconds)
-        self._last = now
-        ordered = sorted(self._recent)
-        self._estimate = ordered[min(len(ordered) - 1, int(self.QUANTILE * len(ordered)))]
+        self._recent.append((time.monotonic() if now is None else now, seconds))
 
     def clear(self) -> None:
         self._recent.clear()
-        self._estimate = 0.0
-        self._last = float("-inf")
 
     def estimate(self, now: float | None = None) -> float:
-        """0 until a reply has been seen, and again once the last one is older than STALE_S. Reads only (the
-        scheduler's side-effect-free peek asks it too)."""
+        """The quantile of the measurements younger than STALE_S; 0 when there are none (nothing measured yet, or
+        only long ago). Reads only (the scheduler's side-effect-free peek asks it too)."""
         now = time.monotonic() if now is None else now
-        return 0.0 if now - self._last > self.STALE_S else self._estimate
+        fresh = sorted(s for t, s in self._recent if now - t <= self.STALE_S)
+        return fresh[min(len(fresh) - 1, int(self.QUANTILE * len(fresh)))] if fresh else 0.0
 
 
 def _cannot_make_it(req: Request, now: float, service_s: float) -> bool:
@@ -275,13 +268,16 @@ class ModelQueues:
             self._pending = 0
             return out
 
-    def close(self) -> list[Request]:
+    def close(self) -> tuple[list[Request], list[Request]]:
         """``drain`` and refuse every later ``put`` (UNAVAILABLE), in one step: the engine's loop has
         ended, so a request queued after its last drain would never be answered (a submit racing a
-        reload's stop, or an engine whose loop ended on a fault)."""
+        reload's stop, or an engine whose loop ended on a fault). Returns (queued, shed): those a full queue
+        shed as late and no take has answered yet are DEADLINE_EXCEEDED, not "retry" as the queued are."""
         with self._cond:
             self._closed = True
-            return self.drain()
+            shed = list(self._shed)
+            self._shed = []
+            return self.drain(), shed
 
     def reopen(self) -> None:
         """Take requests again: an engine loop (re)starts (the capacity harness runs one engine per epoch). The
