@@ -335,3 +335,44 @@ def test_peek_leaves_the_service_estimate_as_it_was():
         q.note_service("a", 0.01, now=2.6)  # after a gap longer than STALE_S: a fresh window either way
         estimates.append(q.service_estimate("a", now=2.6))
     assert estimates == [pytest.approx(0.01), pytest.approx(0.01)]
+
+
+def _light_model_beside_an_overloading_one(policy: str, shed_late: bool) -> dict:
+    """Virtual time, the real queues: model a (50 ms deadline) arrives at 2.5x what the stand-in GPU serves (a batch
+    of up to 2 takes 20 ms, one taken every 10 ms), model b (1 s deadline) at 10 requests/s, for 20 s.
+    Returns b's outcomes."""
+    q = ModelQueues(["a", "b"], max_queue=256, policy=policy, shed_expired=True, shed_late=shed_late)
+    arrivals = sorted([(k * 0.002, "a", 0.05) for k in range(10_000)] + [(k * 0.1 + 0.0007, "b", 1.0)
+                                                                         for k in range(200)])
+    b: dict = {"met": 0, "late": 0, "shed": 0, "refused": 0}
+    running: list = []
+    now, i = 0.0, 0
+    while now < 22.0:
+        while i < len(arrivals) and arrivals[i][0] <= now:
+            t, model, slo = arrivals[i]
+            i += 1
+            try:
+                q.put(req(model, f"{model}{i}", t, t + slo))
+            except ProtocolError:
+                b["refused"] += model == "b"
+        for done in [x for x in running if x[0] <= now]:
+            running.remove(done)
+            finished, model, batch = done
+            if model == "b":
+                b["met"] += sum(finished <= r.deadline for r in batch)
+                b["late"] += sum(finished > r.deadline for r in batch)
+            q.note_service(model, 0.02, now=finished)
+        model, batch, shed = q.take(2, now=now)
+        b["shed"] += sum(r.model == "b" for r in shed)
+        if batch:
+            running.append((now + 0.02, model, batch))
+        now += 0.01
+    return b
+
+
+def test_a_light_model_beside_an_overloading_one_is_starved_by_esf_and_lqf_and_served_by_rr():
+    """What docs/engine.md ("Starvation under overload") says: not delayed to its last milliseconds, starved."""
+    assert _light_model_beside_an_overloading_one("rr", False)["met"] == 200
+    for policy, shed_late in (("esf", False), ("esf", True), ("lqf", False)):
+        b = _light_model_beside_an_overloading_one(policy, shed_late)
+        assert sum(b.values()) == 200 and b["met"] < 100, (policy, shed_late, b)
