@@ -109,6 +109,30 @@ def test_json_report_of_a_model_with_no_replies_is_strict_json(tmp_path):
     assert r["replies"] == 0 and r["p50_ms"] is None and r["p99_ms"] is None and r["server_p50_ms"] is None
 
 
+def test_a_report_that_cannot_be_written_leaves_the_previous_one_whole(tmp_path):
+    """The file was opened for writing (truncated) first: a write that failed (here the file-size limit, as a full
+    disk would) left the previous report cut short, invalid JSON, and ended the run with a traceback."""
+    import json
+    import resource
+
+    path, _ = cluster_config(tmp_path)
+    (port,) = free_ports(1)
+    out = tmp_path / "report.json"
+    previous = json.dumps({"previous": "x" * 2000})
+    out.write_text(previous)
+
+    def small_files() -> None:  # Python ignores SIGXFSZ: a write past the limit fails with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+    with HalfDeafRouter(f"tcp://127.0.0.1:{port}"):
+        res = subprocess.run([sys.executable, "-m", "services.fleet.main", "-c", str(path), "--address",
+                              f"tcp://127.0.0.1:{port}", "--robots", "2", "--duration", "0.5", "--json", str(out)],
+                             capture_output=True, text=True, cwd=ROOT, timeout=60, preexec_fn=small_files)
+    assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert "--json: cannot write" in res.stderr and "toy-a" in res.stdout  # the table still came out
+    assert out.read_text() == previous
+
+
 class TwoModelRouter(HalfDeafRouter):
     """Describes toy-a (answered UNAVAILABLE) and toy-wide, whose 1025 cameras no request can carry (the SDK
     refuses to send one), and a third model no robot is spread to."""
@@ -191,6 +215,25 @@ def test_a_fleet_of_more_robots_than_a_default_zmq_context_allows_runs():
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
     r = report.models["toy-a"]
     assert r.robots == 1100 and r.sent == 1100
-    # Robot 0's answer is UNAVAILABLE, and so is a request whose robot was not connected yet when it was due (more of
-    # them on a slow host); the rest are lost by this router.
-    assert sum(r.errors.values()) == 1100 and set(r.errors) <= {"UNAVAILABLE", "NO_REPLY"}, r.errors
+    # Robot 0's one request is answered UNAVAILABLE, the rest are lost by this router. A request whose robot was not
+    # connected yet when it was due was UNAVAILABLE too: the fleet's clock now starts once every robot is connected.
+    assert r.errors == {"UNAVAILABLE": 1, "NO_REPLY": 1099}, r.errors
+
+
+def test_robots_are_all_connected_before_the_clock_starts_or_the_fleet_says_it_could_not():
+    from services.fleet.robots import _connect_all
+    from shared.client import RobotClient
+
+    (port, unused) = free_ports(2)
+    ctx = zmq.Context()
+    try:
+        with HalfDeafRouter(f"tcp://127.0.0.1:{port}"):
+            clients = [RobotClient(f"tcp://127.0.0.1:{p}", context=ctx) for p in (port, port, unused)]
+            try:
+                assert _connect_all(clients, 0.5) == 1  # nothing listens on the third's port
+                assert _connect_all(clients[:2], 0.5) == 0
+            finally:
+                for c in clients:
+                    c.close()
+    finally:
+        ctx.term()

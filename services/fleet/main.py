@@ -12,7 +12,7 @@ import sys
 from services.fleet.robots import check_settings, run_fleet
 from shared.client import RobionError
 from shared.config import dial_address, valid_address
-from shared.files import unwritable
+from shared.files import unwritable, write_atomic
 from shared.service import load_or_exit, log_level, setup_logging, watch_parent
 
 log = logging.getLogger("robion.fleet")
@@ -62,12 +62,17 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{report.robots} robots at {report.hz:g} Hz for {report.duration_s:g} s, network {report.network}:")
     print(report.table())
     if args.json:
-        with open(args.json, "w") as fh:
-            # A model without a successful reply has NaN percentiles: null in the file, since a bare NaN
-            # is not JSON (jq and JSON.parse refuse the whole report).
-            models = {name: {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
-                      for name, m in report.to_dict()["models"].items()}
-            json.dump({**report.to_dict(), "models": models}, fh, indent=2, allow_nan=False)
+        # A model without a successful reply has NaN percentiles: null in the file, since a bare NaN
+        # is not JSON (jq and JSON.parse refuse the whole report).
+        models = {name: {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in m.items()}
+                  for name, m in report.to_dict()["models"].items()}
+        text = json.dumps({**report.to_dict(), "models": models}, indent=2, allow_nan=False) + "\n"
+        try:
+            # Whole or not at all: opened for writing first, a failed write left the previous report truncated.
+            write_atomic(args.json, text)
+        except OSError as exc:
+            log.error("--json: cannot write %s (%s); the report is only the table above", args.json, exc)
+            return 1
     sys.stdout.flush()
     return 0
 

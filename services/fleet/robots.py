@@ -82,6 +82,26 @@ def check_settings(robots: int, hz: float, duration_s: float, network: str, seed
         raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
 
 
+# How long the robots of a fleet may take to connect before its clock starts. A clock started while thousands of
+# connections were still being accepted (a listen backlog overflowing retries a SYN after 1 s) counted the fleet's own
+# start-up as lag and UNAVAILABLE answers.
+CONNECT_TIMEOUT_S = 10.0
+
+
+def _connect_all(clients: list[RobotClient], timeout_s: float) -> int:
+    """Wait until every client's connection to the router is up (its socket takes a send: the clients queue only to
+    a connected router); returns how many were still not connected after ``timeout_s``."""
+    waiting = {c.socket for c in clients}
+    end = time.monotonic() + timeout_s
+    while waiting and time.monotonic() < end:
+        poller = zmq.Poller()
+        for sock in waiting:
+            poller.register(sock, zmq.POLLOUT)
+        for sock, _ in poller.poll(timeout=100):
+            waiting.discard(sock)
+    return len(waiting)
+
+
 def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int = 0, network: str = "wifi7",
               models: list[str] | None = None, drain_s: float = 5.0) -> FleetReport:
     """Drive ``robots`` simulated robots at ``hz`` for ``duration_s``; robots are spread over ``models`` round-robin.
@@ -110,12 +130,17 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
         # of the report, where they would read 0% SLO attainment for requests never sent.
         models = models[:robots]
 
+        # Requests in flight at the end are waited for as long as the longest deadline, and a client gives up on a
+        # request no sooner: a fixed 5 s (10 s) counted answers still in time as unanswered (timed out).
+        longest_s = max(meta[m].deadline_ms for m in models) / 1e3
+        drain_s = max(drain_s, longest_s)
         obs = []
         for i in range(robots):
             model = models[i % len(models)]
             info = meta[model]
             try:
-                clients.append(RobotClient(address, robot_id=f"robot-{seed}-{i:03d}", context=ctx))
+                clients.append(RobotClient(address, robot_id=f"robot-{seed}-{i:03d}", context=ctx,
+                                           timeout_s=max(10.0, longest_s + 1.0)))
             except zmq.ZMQError as exc:
                 raise ValueError(f"robots: could not open a connection for robot {i + 1} of {robots} ({exc}): drive "
                                  "fewer robots per fleet process, or raise the open-files limit (ulimit -n)") from None
@@ -123,6 +148,10 @@ def run_fleet(address: str, robots: int, hz: float, duration_s: float, seed: int
             state = rng.standard_normal(info.state_dim).astype(np.float32)
             obs.append((model, images, state, INSTRUCTIONS[i % len(INSTRUCTIONS)]))
 
+        not_connected = _connect_all(clients, CONNECT_TIMEOUT_S)
+        if not_connected:
+            raise ValueError(f"robots: {not_connected} of {robots} robots could not connect to the router at {address} "
+                             f"within {CONNECT_TIMEOUT_S:g} s")
         period = 1.0 / hz
         start = time.monotonic() + 0.05
         next_send = [start + rng.uniform(0, period) for _ in range(robots)]
