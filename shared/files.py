@@ -38,8 +38,16 @@ def exclusive(path: str | Path) -> Iterator[None]:
 
 def write_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temp file of this call's own in the same folder
-    (processes or threads sharing the folder may write at once), then rename it into place."""
-    path = Path(path)
+    (processes or threads sharing the folder may write at once), then rename it into place.
+
+    A symlink is followed (its target gets the text, the link stays), and a path that is no regular file (a FIFO,
+    ``/dev/stdout``, a shell's ``>(jq .)``) is written as a stream: a rename would replace the link with a file, and
+    fails for ``/dev/fd/N``."""
+    if os.path.exists(path) and not os.path.isfile(path):  # both follow links: /dev/fd/N leads to a pipe
+        with open(path, "w") as fh:
+            fh.write(text)
+        return
+    path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     try:

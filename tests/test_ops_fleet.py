@@ -237,3 +237,29 @@ def test_robots_are_all_connected_before_the_clock_starts_or_the_fleet_says_it_c
                     c.close()
     finally:
         ctx.term()
+
+
+def test_an_atomic_write_follows_a_symlink_and_streams_into_a_pipe(tmp_path):
+    """The report's rename replaced a symlink with a file (its target kept the old report), and failed for a shell's
+    `--json >(jq .)` (/dev/fd/N, where no temp file can be made beside it)."""
+    import os
+
+    from shared.files import write_atomic
+
+    target = tmp_path / "reports" / "latest.json"
+    target.parent.mkdir()
+    target.write_text("{}")
+    link = tmp_path / "report.json"
+    link.symlink_to(target)
+    write_atomic(link, '{"new": 1}')
+    assert link.is_symlink() and target.read_text() == '{"new": 1}'
+    read, write = os.pipe()
+    try:
+        write_atomic(f"/dev/fd/{write}", "streamed")
+        os.close(write)
+        write = -1
+        assert os.read(read, 100) == b"streamed"
+    finally:
+        os.close(read)
+        if write >= 0:
+            os.close(write)

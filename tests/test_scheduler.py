@@ -139,9 +139,20 @@ def test_a_slow_burst_ages_out_of_the_estimate_while_replies_keep_coming():
     t = ServiceTimes()
     for i in range(ServiceTimes.WINDOW):
         t.note(0.049, now=i * 0.005)
-    for i in range(10):  # ten replies over the next 1.5 s
-        t.note(0.020, now=0.4 + i * 0.15)
-    assert t.estimate(0.4 + 9 * 0.15) == pytest.approx(0.020)
+    for i in range(30):  # 20 replies a second for the next 1.5 s
+        t.note(0.020, now=0.4 + i * 0.05)
+    assert t.estimate(0.4 + 29 * 0.05) == pytest.approx(0.020)
+
+
+def test_one_slow_batch_among_few_replies_does_not_set_the_estimate():
+    """Expired one by one, at 5 batches a second only the last second's five counted, and their 90th percentile is
+    their slowest: one 45 ms batch among 20 ms ones shed requests with 40 ms left for a whole second."""
+    t = ServiceTimes()
+    for i in range(50):
+        t.note(0.020, now=i * 0.2)
+    t.note(0.045, now=10.0)
+    assert t.estimate(10.1) == pytest.approx(0.020)
+    assert t.estimate(10.0 + ServiceTimes.STALE_S + 0.1) == 0.0  # no reply since: measured afresh
 
 
 def test_shed_late_never_sheds_for_an_estimate_no_request_could_beat():

@@ -117,9 +117,10 @@ class Engine:
     def _expired_results(self, expired: list[Request]) -> list[Result]:
         """DEADLINE_EXCEEDED for requests the queues shed: late already, or too late to make it (shed_late)."""
         now = time.monotonic()
+        estimates = {m: self.queues.service_estimate(m, now) for m in {r.model for r in expired}}  # once a model
         return [Result(r, error=(ErrorCode.DEADLINE_EXCEEDED, "deadline passed while queued" if r.deadline <= now
                                  else f"deadline cannot be met: {(r.deadline - now) * 1e3:.1f} ms left, recent "
-                                      f"service time {self.queues.service_estimate(r.model, now) * 1e3:.1f} ms"))
+                                      f"service time {estimates[r.model] * 1e3:.1f} ms"))
                 for r in expired]
 
 

@@ -96,27 +96,36 @@ class ServiceTimes:
     stall, a reload, a burst of slow locksteps) would shed every request, so no batch would run and nothing would
     ever lower it. The window as a whole used to expire only after ``STALE_S`` without any reply, so the trickle of
     requests a too-high estimate still let through kept it alive: after a slow burst, nine in ten requests that could
-    make a 50 ms deadline were shed for about 5 s."""
+    make a 50 ms deadline were shed for about 5 s. The newest ``MIN_SAMPLES`` count whatever their age while replies
+    keep coming: of a handful, the 90th percentile is the slowest, and one slow batch at 5 batches a second shed
+    requests that could make it for a whole second."""
 
     WINDOW = 64
     QUANTILE = 0.9
     STALE_S = 1.0
+    MIN_SAMPLES = 16
 
     def __init__(self) -> None:
         self._recent: deque[tuple[float, float]] = deque(maxlen=self.WINDOW)  # (when, seconds)
 
     def note(self, seconds: float, now: float | None = None) -> None:
-        self._recent.append((time.monotonic() if now is None else now, seconds))
+        now = time.monotonic() if now is None else now
+        if self._recent and now - self._recent[-1][0] > self.STALE_S:  # after a gap without replies: start afresh
+            self._recent.clear()
+        self._recent.append((now, seconds))
 
     def clear(self) -> None:
         self._recent.clear()
 
     def estimate(self, now: float | None = None) -> float:
-        """The quantile of the measurements younger than STALE_S; 0 when there are none (nothing measured yet, or
-        only long ago). Reads only (the scheduler's side-effect-free peek asks it too)."""
+        """The quantile of the measurements younger than STALE_S (at least the newest MIN_SAMPLES); 0 when the newest
+        is older than that, or there is none. Reads only (the scheduler's side-effect-free peek asks it too)."""
         now = time.monotonic() if now is None else now
-        fresh = sorted(s for t, s in self._recent if now - t <= self.STALE_S)
-        return fresh[min(len(fresh) - 1, int(self.QUANTILE * len(fresh)))] if fresh else 0.0
+        if not self._recent or now - self._recent[-1][0] > self.STALE_S:
+            return 0.0
+        n = max(self.MIN_SAMPLES, sum(1 for t, _ in self._recent if now - t <= self.STALE_S))
+        fresh = sorted(s for _, s in list(self._recent)[-n:])
+        return fresh[min(len(fresh) - 1, int(self.QUANTILE * len(fresh)))]
 
 
 def _cannot_make_it(req: Request, now: float, service_s: float) -> bool:
