@@ -33,7 +33,7 @@ sys.path.insert(0, ROOT)
 from shared.client import RobionError, RobotClient  # noqa: E402
 from shared.cluster import LocalCluster  # noqa: E402
 from shared.config import RouterConfig, load_config  # noqa: E402
-from shared.files import unwritable  # noqa: E402
+from shared.files import unwritable, write_atomic  # noqa: E402
 from shared.protocol import InferRequest, encode  # noqa: E402
 from tests.helpers import cluster_config  # noqa: E402
 
@@ -120,8 +120,7 @@ def main() -> None:
               "host": platform.node(), "cores": os.cpu_count(), "requests": args.requests, "hz": args.hz,
               "rounds": args.rounds, "runs": runs, "command": "python bench/router_flood.py " + " ".join(sys.argv[1:])}
     if args.out:
-        with open(args.out, "w") as fh:
-            json.dump(result, fh, indent=2)
+        write_atomic(args.out, json.dumps(result, indent=2) + "\n")
     print(f"{'setting':<10}{'cap':>11}{'round':>6}{'flood sent':>12}{'good in deadline':>18}{'good p50 ms':>13}  answers")
     for run in runs:
         print(f"{run['setting']:<10}{run['cap']:>11}{run['round']:>6}{run['flood_sent']:>12}"

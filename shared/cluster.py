@@ -50,6 +50,12 @@ def control_status(address: str, timeout_s: float = 1.0, context: zmq.Context | 
     return reply.get("status") if reply else None
 
 
+def _metrics_ports(cfg: ClusterConfig) -> list[tuple[str, int]]:
+    """(whose, port) of every service's metrics port in ``cfg``; 0 is a service that serves none."""
+    ports = [("the router", cfg.router.metrics_port), ("the control plane", cfg.control.metrics_port)]
+    return ports + [(f"executor {ex.name}", ex.metrics_port_or_default(i)) for i, ex in enumerate(cfg.executors)]
+
+
 def metrics_port_clash(cfg: ClusterConfig) -> str | None:
     """Why the services of ``cfg`` cannot all serve metrics on one host, if they cannot: two given one port (an
     executor's ``metrics_port`` equal to another's default 9110 + index, the router's and the control plane's).
@@ -61,9 +67,7 @@ def metrics_port_clash(cfg: ClusterConfig) -> str | None:
         port = address.rsplit(":", 1)[1] if address.startswith("tcp://") else ""
         if port.isdigit():
             owners[int(port)] = key
-    ports = [("the router", cfg.router.metrics_port), ("the control plane", cfg.control.metrics_port)]
-    ports += [(f"executor {ex.name}", ex.metrics_port_or_default(i)) for i, ex in enumerate(cfg.executors)]
-    for who, port in ports:
+    for who, port in _metrics_ports(cfg):
         if port and port in owners:
             return (f"metrics port {port} is both {owners[port]}'s and {who}'s on this host; give one another "
                     f"metrics_port (executors default to 9110 + their index; 0 disables)")
@@ -76,10 +80,8 @@ def metrics_ports_taken(cfg: ClusterConfig) -> list[str]:
     its port only logs it, so a second cluster on the first one's default ports started without metrics, and
     Prometheus scraped the first cluster's numbers under the second's targets. `robion up` warns of them rather than
     refusing: 9100, the router's default, is also node_exporter's, and metrics are not what robots need."""
-    ports = [("the router", cfg.router.metrics_port), ("the control plane", cfg.control.metrics_port)]
-    ports += [(f"executor {ex.name}", ex.metrics_port_or_default(i)) for i, ex in enumerate(cfg.executors)]
     problems = []
-    for who, port in ports:
+    for who, port in _metrics_ports(cfg):
         if not port:
             continue
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
